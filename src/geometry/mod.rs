@@ -1,0 +1,7 @@
+//! Yarn geometry: periodic B-spline centre curves from the weave pattern, the tile BVH, and the
+//! implicit plies/fibers.
+
+pub mod bspline;
+pub mod ply;
+pub mod tile;
+pub mod yarn;

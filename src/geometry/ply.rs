@@ -1,0 +1,316 @@
+//! Implicit plies and fibers (forward-model.md §1.2–1.4): helical plies inside the yarn tube,
+//! fibers as 1D cross-section tables (normal perturbation and ambient occlusion per angle).
+
+use super::yarn::YarnCurve;
+use glam::{Quat, Vec2, Vec3};
+use rand::prelude::*;
+use std::f32::consts::{PI, TAU};
+use std::sync::OnceLock;
+
+/// Resolution of the 1D cross-section tables.
+pub const TABLE_RES: usize = 512;
+/// Ply twist angle against the yarn axis (κ_p = tan(angle)/R_p).
+pub const PLY_TWIST_DEG: f32 = 25.0;
+/// Fiber twist angle on the ply surface (opposite to the ply twist).
+pub const FIBER_TWIST_DEG: f32 = 30.0;
+
+/// A 1D table over the angle around a bundle of `n` circular elements (plies in a yarn or fibers
+/// in a ply): for a point seen from angle ϑ, the visible element's normal perturbation, its ambient
+/// occlusion (min–max normalised, 1 = least occluded) and its centre radius.
+#[derive(Clone, Debug)]
+pub struct CrossSection {
+    /// Signed angle from the bundle normal to the element normal.
+    pub pert: Vec<f32>,
+    /// Normalised ambient occlusion in [0, 1].
+    pub ao: Vec<f32>,
+    /// Radius of the visible element's centre (bundle radius 1).
+    pub centre_r: Vec<f32>,
+}
+
+impl CrossSection {
+    /// Build for `n` elements of radius `er` with centres at radii `radii[i]`, angles `2πi/n`
+    /// (bundle radius 1). AO is the cosine-weighted 2D visibility over the outward half-plane
+    /// (forward-model ambiguity 13), then min–max normalised.
+    pub fn build(radii: &[f32], er: f32) -> Self {
+        let n = radii.len();
+        let centres: Vec<Vec2> = (0..n)
+            .map(|i| {
+                let a = TAU * i as f32 / n as f32;
+                Vec2::new(a.cos(), a.sin()) * radii[i]
+            })
+            .collect();
+        let hit_circle = |o: Vec2, d: Vec2, c: Vec2| -> Option<f32> {
+            let oc = o - c;
+            let b = oc.dot(d);
+            let h = b * b - (oc.dot(oc) - er * er);
+            if h < 0.0 {
+                return None;
+            }
+            let t = -b - h.sqrt();
+            (t > 1e-5).then_some(t)
+        };
+        let mut pert = vec![0.0; TABLE_RES];
+        let mut occ = vec![0.0; TABLE_RES];
+        let mut centre_r = vec![0.0; TABLE_RES];
+        let dirs = 96;
+        let mut last = 0usize;
+        for k in 0..TABLE_RES {
+            let th = TAU * k as f32 / TABLE_RES as f32;
+            let radial = Vec2::new(th.cos(), th.sin());
+            let o = radial * 1.5;
+            let best = (0..n)
+                .filter_map(|i| hit_circle(o, -radial, centres[i]).map(|t| (t, i)))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            // A ray through a gap reuses the neighbouring element (ambiguity 14).
+            let i = best.map(|b| b.1).unwrap_or(last);
+            last = i;
+            let p = best.map(|(t, _)| o - radial * t).unwrap_or(centres[i] + radial * er);
+            let en = (p - centres[i]).normalize_or(radial);
+            pert[k] = radial.perp_dot(en).atan2(radial.dot(en));
+            centre_r[k] = radii[i];
+            let mut blocked = 0.0;
+            for m in 0..dirs {
+                let u = (m as f32 + 0.5) / dirs as f32;
+                let a = (2.0 * u - 1.0).asin(); // cosine-weighted in 2D
+                let d = Vec2::from_angle(a).rotate(en);
+                let q = p + en * 1e-4;
+                if (0..n).any(|j| j != i && hit_circle(q, d, centres[j]).is_some()) {
+                    blocked += 1.0;
+                }
+            }
+            occ[k] = blocked / dirs as f32;
+        }
+        let (lo, hi) = occ.iter().fold((f32::MAX, f32::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+        let ao = occ.iter().map(|&x| if hi - lo > 1e-6 { 1.0 - (x - lo) / (hi - lo) } else { 1.0 }).collect();
+        CrossSection { pert, ao, centre_r }
+    }
+
+    /// Linear interpolation at angle `a` (radians, any value) of one of the tables.
+    pub fn lookup(table: &[f32], a: f32) -> f32 {
+        let u = (a / TAU).rem_euclid(1.0) * TABLE_RES as f32;
+        let k = (u as usize).min(TABLE_RES - 1);
+        let f = u - k as f32;
+        table[k] * (1.0 - f) + table[(k + 1) % TABLE_RES] * f
+    }
+}
+
+/// Radius of `n` touching circles on a ring inside a unit circle (ambiguity 19).
+pub fn element_radius(n: u32) -> f32 {
+    if n <= 1 {
+        return 1.0;
+    }
+    let s = (PI / n as f32).sin();
+    s / (1.0 + s)
+}
+
+/// Fiber cross-section for `n_f` fibers, cached (fixed seed per count: reproducible renders).
+pub fn fiber_table(n_f: u32) -> &'static CrossSection {
+    static TABLES: OnceLock<Vec<OnceLock<CrossSection>>> = OnceLock::new();
+    let tables = TABLES.get_or_init(|| (0..=64).map(|_| OnceLock::new()).collect());
+    let n = n_f.clamp(2, 64);
+    tables[n as usize].get_or_init(|| {
+        let er = element_radius(n);
+        let mut rng = StdRng::seed_from_u64(0xF1BE_0000 + n as u64);
+        let radii: Vec<f32> = (0..n).map(|_| (1.0 - er) - rng.random_range(0.0..0.8) * er).collect();
+        CrossSection::build(&radii, er)
+    })
+}
+
+/// Ply cross-section for `n_p` plies, cached.
+pub fn ply_table(n_p: u32) -> &'static CrossSection {
+    static TABLES: OnceLock<Vec<OnceLock<CrossSection>>> = OnceLock::new();
+    let tables = TABLES.get_or_init(|| (0..=16).map(|_| OnceLock::new()).collect());
+    let n = n_p.clamp(1, 16);
+    tables[n as usize].get_or_init(|| {
+        let er = element_radius(n);
+        CrossSection::build(&vec![1.0 - er; n as usize], er)
+    })
+}
+
+/// Ply and fiber layout of one yarn family.
+#[derive(Clone, Copy, Debug)]
+pub struct PlyModel {
+    /// Plies per yarn.
+    pub n_p: u32,
+    /// Fibers per ply.
+    pub n_f: u32,
+}
+
+/// Result of mapping a tube point + ray direction to the implicit plies (§1.3).
+#[derive(Clone, Copy, Debug)]
+pub struct PlyHit {
+    /// Distance along the ray from the tube point to the ply surface (negative: behind).
+    pub t: f32,
+    /// Number of plies whose cross-section the projected line crosses (`N_i`).
+    pub crossed: u32,
+    /// Shading normal of the fiber at the hit.
+    pub normal: Vec3,
+    /// Fiber tangent at the hit.
+    pub tangent: Vec3,
+    /// Ply-level ambient occlusion `AO_p` ∈ [0,1] (1 for single-ply yarns).
+    pub ao_p: f32,
+    /// Fiber-level ambient occlusion `AO_f` ∈ [0,1].
+    pub ao_f: f32,
+}
+
+impl PlyModel {
+    /// Ply-circle geometry for a yarn of radius `r`: (ply radius, ring radius, twist per length).
+    fn layout(&self, r: f32) -> (f32, f32, f32) {
+        let rp = element_radius(self.n_p) * r;
+        let ring = r - rp;
+        let kappa = if ring > 1e-6 { PLY_TWIST_DEG.to_radians().tan() / ring } else { 0.0 };
+        (rp, ring, kappa)
+    }
+
+    /// Does the line through `q` along `d` cross any ply of `yarn` (ply visibility `V_p`, §3.1)?
+    pub fn blocks(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
+        self.intersect(yarn, q, d, true).is_some()
+    }
+
+    /// Ply intersection in the yarn's normal cross-section at `q` (projected ray, §1.3 step 4).
+    /// `entry`: the first ply surface at `t ≥ 0`; otherwise the last ply surface left at `t ≤ 0`.
+    /// Returns (t, ply index, crossed count, 2D hit, ply centre, ply phase, frame, s).
+    fn intersect(&self, yarn: &YarnCurve, q: Vec3, d: Vec3, entry: bool) -> Option<PlyLocal> {
+        let s = yarn.closest_s(q);
+        let f = yarn.frame(s);
+        let (rp, ring, kappa) = self.layout(yarn.radius);
+        let rel = q - f.c;
+        let a = Vec2::new(rel.dot(f.ex), rel.dot(f.ey));
+        let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
+        let aa = dv.dot(dv);
+        let tol = 1e-3 * yarn.radius;
+        let mut best: Option<(f32, usize)> = None;
+        let mut crossed = 0;
+        for i in 0..self.n_p as usize {
+            let beta = TAU * i as f32 / self.n_p as f32 + kappa * f.arc;
+            let c = Vec2::new(beta.cos(), beta.sin()) * ring;
+            let oc = a - c;
+            let cc = oc.dot(oc) - rp * rp;
+            if aa < 1e-10 {
+                // Ray along the yarn axis: it "hits" the ply it starts in.
+                if cc <= 0.0 {
+                    crossed += 1;
+                    best = Some((0.0, i));
+                }
+                continue;
+            }
+            let b = oc.dot(dv);
+            let disc = b * b - aa * cc;
+            if disc < 0.0 {
+                continue;
+            }
+            crossed += 1;
+            let (t0, t1) = ((-b - disc.sqrt()) / aa, (-b + disc.sqrt()) / aa);
+            let cand = if entry { (t1 >= -tol).then_some(t0.max(0.0)) } else { (t0 <= tol).then_some(t1.min(0.0)) };
+            if let Some(t) = cand {
+                let better = match best {
+                    None => true,
+                    Some((bt, _)) => (entry && t < bt) || (!entry && t > bt),
+                };
+                if better {
+                    best = Some((t, i));
+                }
+            }
+        }
+        let (t, i) = best?;
+        let beta = TAU * i as f32 / self.n_p as f32 + kappa * f.arc;
+        Some(PlyLocal {
+            t,
+            crossed,
+            hit: a + dv * t,
+            centre: Vec2::new(beta.cos(), beta.sin()) * ring,
+            beta,
+            rp,
+            ring,
+            kappa,
+            frame: f,
+        })
+    }
+
+    /// Full ply/fiber mapping at a tube point: ply hit, fiber shading frame, AO values.
+    pub fn map(&self, yarn: &YarnCurve, q: Vec3, d: Vec3, entry: bool) -> Option<PlyHit> {
+        let l = self.intersect(yarn, q, d, entry)?;
+        let f = l.frame;
+        let n2 = (l.hit - l.centre).normalize_or(Vec2::Y);
+        let ply_t = (f.t + (f.ey * l.beta.cos() - f.ex * l.beta.sin()) * (l.ring * l.kappa)).normalize();
+        let mut np = f.ex * n2.x + f.ey * n2.y;
+        np = (np - ply_t * np.dot(ply_t)).normalize_or(f.ey);
+        // Ply-level AO at the untwisted angle of the hit around the yarn centre.
+        let ao_p = if self.n_p > 1 {
+            CrossSection::lookup(&ply_table(self.n_p).ao, l.hit.y.atan2(l.hit.x) - l.kappa * f.arc)
+        } else {
+            1.0
+        };
+        // Fiber table at θ_f = u_p + κ_f ℓ_p (ply azimuth + fiber twist × ply arc length).
+        let u_p = n2.y.atan2(n2.x) - l.beta;
+        let ell_p = f.arc * (1.0 + (l.ring * l.kappa).powi(2)).sqrt();
+        let kappa_f = -FIBER_TWIST_DEG.to_radians().tan() / l.rp;
+        let theta_f = u_p + kappa_f * ell_p;
+        let fib = fiber_table(self.n_f);
+        let pert = CrossSection::lookup(&fib.pert, theta_f);
+        let ao_f = CrossSection::lookup(&fib.ao, theta_f);
+        let rf = CrossSection::lookup(&fib.centre_r, theta_f);
+        let circ = ply_t.cross(np);
+        let tangent = (ply_t + circ * (rf * l.rp * kappa_f)).normalize();
+        let n0 = (np - tangent * np.dot(tangent)).normalize_or(np);
+        let normal = (Quat::from_axis_angle(tangent, pert) * n0).normalize();
+        Some(PlyHit { t: l.t, crossed: l.crossed, normal, tangent, ao_p, ao_f })
+    }
+}
+
+struct PlyLocal {
+    t: f32,
+    crossed: u32,
+    hit: Vec2,
+    centre: Vec2,
+    beta: f32,
+    rp: f32,
+    ring: f32,
+    kappa: f32,
+    frame: super::yarn::YarnFrame,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::yarn::YarnSet;
+    use crate::pattern::WeavePattern;
+
+    #[test]
+    fn tables_are_normalised_and_finite() {
+        for n in [20, 35, 50] {
+            let t = fiber_table(n);
+            assert!(t.ao.iter().all(|a| (0.0..=1.0).contains(a)));
+            assert!(t.ao.iter().any(|&a| a < 0.2) && t.ao.iter().any(|&a| a > 0.8));
+            assert!(t.pert.iter().all(|p| p.is_finite() && p.abs() < PI / 2.0 + 1e-3));
+        }
+        for n in 1..=7 {
+            let t = ply_table(n);
+            assert!(t.ao.iter().all(|a| a.is_finite()));
+        }
+    }
+
+    #[test]
+    fn plies_fit_inside_the_yarn_and_top_down_rays_hit() {
+        let set = YarnSet::new(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0);
+        let y = &set.yarns[0];
+        for n_p in 1..=7 {
+            let m = PlyModel { n_p, n_f: 30 };
+            let (rp, ring, _) = m.layout(4.0);
+            assert!(rp + ring <= 4.0 + 1e-4);
+            let mut hits = 0;
+            for k in 0..100 {
+                let s = k as f32 * 0.2;
+                let f = y.frame(s);
+                let q = f.c + f.ey * 4.0 + f.ex * ((k % 9) as f32 - 4.0) * 0.3;
+                if let Some(h) = m.map(y, q, -f.ey, true) {
+                    hits += 1;
+                    assert!(h.t >= 0.0 && h.t < 8.0 && h.normal.is_finite() && h.tangent.is_finite());
+                    assert!(h.crossed >= 1 && h.crossed <= n_p);
+                    assert!((h.normal.length() - 1.0).abs() < 1e-3);
+                }
+            }
+            assert!(hits > 50, "n_p={n_p}: only {hits} hits");
+        }
+    }
+}

@@ -1,0 +1,244 @@
+//! Yarn centre curves generated from the weave pattern (paper Appendix A, pipeline.md §1).
+//!
+//! Weft `i` runs along x at `y = (i + ½)·PITCH`, warp `j` along y at `x = (j + ½)·PITCH`. Each
+//! yarn's height is a periodic cubic B-spline over `CTRL_PER_CELL` control values per crossed
+//! cell: `+h` where it lies on top, `−h` where it lies below, Gaussian-smoothed (kernel 16).
+
+use super::bspline::PeriodicBSpline;
+use crate::pattern::WeavePattern;
+use glam::Vec3;
+
+/// Yarn pitch (centre-to-centre distance): the length unit of the whole model.
+pub const PITCH: f32 = 10.0;
+/// Control points per crossed cell (paper: 12).
+pub const CTRL_PER_CELL: usize = 12;
+/// Gaussian kernel size in control points (paper: 16).
+pub const SMOOTH_KERNEL: usize = 16;
+/// Gaussian sigma in control points. The paper's σ = 1 leaves a square wave whose flanks are steeper
+/// than the yarns are thick; σ = 3 (¼ cell) gives the "sinusoidal" crimp the paper describes.
+pub const SMOOTH_SIGMA: f32 = 3.0;
+/// Crossing height as a fraction of the touching height `(r_e + r_a)/2`: yarns flatten against each
+/// other, so the centres are closer than for round yarns.
+pub const CRIMP: f32 = 0.7;
+
+/// Which yarn family.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Family {
+    /// Weft: runs along x, rows of `P`.
+    Weft,
+    /// Warp: runs along y, columns of `P`.
+    Warp,
+}
+
+/// One yarn's centre curve `c(s)` and radius.
+#[derive(Clone, Debug)]
+pub struct YarnCurve {
+    /// Family.
+    pub family: Family,
+    /// Row (weft) or column (warp) index in the pattern.
+    pub index: usize,
+    /// Fixed lateral coordinate (y for weft, x for warp).
+    pub offset: f32,
+    /// Tube radius.
+    pub radius: f32,
+    /// Height profile over the length coordinate `s` (x for weft, y for warp).
+    pub height: PeriodicBSpline,
+    arc: Vec<f32>,
+}
+
+/// Local frame of a yarn at `s`.
+#[derive(Clone, Copy, Debug)]
+pub struct YarnFrame {
+    /// Centre point.
+    pub c: Vec3,
+    /// Unit tangent `e_z`.
+    pub t: Vec3,
+    /// Reference "up" normal `e_y` (perpendicular to `t`, towards +z).
+    pub ey: Vec3,
+    /// `e_x = e_y × e_z`.
+    pub ex: Vec3,
+    /// Arc length from `s = 0`.
+    pub arc: f32,
+}
+
+const ARC_STEPS_PER_CELL: usize = 32;
+
+impl YarnCurve {
+    fn new(family: Family, index: usize, radius: f32, heights: Vec<f32>) -> Self {
+        let period = heights.len() as f32 / CTRL_PER_CELL as f32 * PITCH;
+        let height = PeriodicBSpline::new(heights, period);
+        let n = (period / PITCH) as usize * ARC_STEPS_PER_CELL;
+        let ds = period / n as f32;
+        let mut arc = vec![0.0; n + 1];
+        for k in 0..n {
+            let slope = |s: f32| (1.0 + height.eval(s).1.powi(2)).sqrt();
+            // Simpson's rule per step: the true arc length (forward-model ambiguity 18).
+            let s0 = k as f32 * ds;
+            arc[k + 1] = arc[k] + ds / 6.0 * (slope(s0) + 4.0 * slope(s0 + ds / 2.0) + slope(s0 + ds));
+        }
+        let offset = (index as f32 + 0.5) * PITCH;
+        YarnCurve { family, index, offset, radius, height, arc }
+    }
+
+    /// Period of the curve along `s`.
+    pub fn period(&self) -> f32 {
+        self.height.period()
+    }
+
+    /// Length coordinate of a point (x for weft, y for warp).
+    pub fn s_of(&self, p: Vec3) -> f32 {
+        match self.family {
+            Family::Weft => p.x,
+            Family::Warp => p.y,
+        }
+    }
+
+    /// Lateral coordinate of a point (y for weft, x for warp).
+    pub fn lateral_of(&self, p: Vec3) -> f32 {
+        match self.family {
+            Family::Weft => p.y,
+            Family::Warp => p.x,
+        }
+    }
+
+    /// Centre point at `s`.
+    pub fn point(&self, s: f32) -> Vec3 {
+        let z = self.height.eval(s).0;
+        match self.family {
+            Family::Weft => Vec3::new(s, self.offset, z),
+            Family::Warp => Vec3::new(self.offset, s, z),
+        }
+    }
+
+    fn axis(&self) -> Vec3 {
+        match self.family {
+            Family::Weft => Vec3::X,
+            Family::Warp => Vec3::Y,
+        }
+    }
+
+    /// Arc length from 0 to `s` (periodic extension).
+    pub fn arc_length(&self, s: f32) -> f32 {
+        let p = self.period();
+        let laps = (s / p).floor();
+        let u = (s - laps * p) / p * (self.arc.len() - 1) as f32;
+        let k = (u as usize).min(self.arc.len() - 2);
+        let f = u - k as f32;
+        laps * self.arc[self.arc.len() - 1] + self.arc[k] * (1.0 - f) + self.arc[k + 1] * f
+    }
+
+    /// Frame at `s`.
+    pub fn frame(&self, s: f32) -> YarnFrame {
+        let (_, dz, _) = self.height.eval(s);
+        let c = self.point(s);
+        let t = (self.axis() + Vec3::Z * dz).normalize();
+        let ey = (Vec3::Z - t * t.z).normalize();
+        let ex = ey.cross(t);
+        YarnFrame { c, t, ey, ex, arc: self.arc_length(s) }
+    }
+
+    /// Closest curve parameter to `p` (Newton on `(p − c(s))·c'(s) = 0`, started at the projection).
+    pub fn closest_s(&self, p: Vec3) -> f32 {
+        let mut s = self.s_of(p);
+        for _ in 0..3 {
+            let (z, dz, ddz) = self.height.eval(s);
+            let ps = self.s_of(p);
+            // g(s) = (ps − s) + (pz − z)·dz ; g'(s) = −1 − dz² + (pz − z)·ddz
+            let g = (ps - s) + (p.z - z) * dz;
+            let dg = -1.0 - dz * dz + (p.z - z) * ddz;
+            if dg.abs() < 1e-6 {
+                break;
+            }
+            s -= (g / dg).clamp(-2.0, 2.0);
+        }
+        s
+    }
+
+    /// Distance from `p` to the centre curve, and the closest parameter.
+    pub fn distance(&self, p: Vec3) -> (f32, f32) {
+        let s = self.closest_s(p);
+        ((p - self.point(s)).length(), s)
+    }
+}
+
+/// Gaussian smoothing of a periodic sequence (circular convolution, kernel `SMOOTH_KERNEL`).
+fn smooth_periodic(v: &[f32]) -> Vec<f32> {
+    let half = (SMOOTH_KERNEL / 2) as i64;
+    let w: Vec<f32> = (-half..=half).map(|k| (-(k * k) as f32 / (2.0 * SMOOTH_SIGMA * SMOOTH_SIGMA)).exp()).collect();
+    let sum: f32 = w.iter().sum();
+    let n = v.len() as i64;
+    (0..n)
+        .map(|i| (-half..=half).zip(&w).map(|(k, wk)| wk * v[(i + k).rem_euclid(n) as usize]).sum::<f32>() / sum)
+        .collect()
+}
+
+/// All yarn curves of one pattern repeat.
+#[derive(Clone, Debug)]
+pub struct YarnSet {
+    /// Weft yarns (one per pattern row) then warp yarns (one per column).
+    pub yarns: Vec<YarnCurve>,
+    /// Tile size along x (`n_a · PITCH`).
+    pub tile_x: f32,
+    /// Tile size along y (`n_e · PITCH`).
+    pub tile_y: f32,
+    /// Crossing height `h`.
+    pub h: f32,
+}
+
+impl YarnSet {
+    /// Generate the centre curves of `pattern` with weft radius `r_e` and warp radius `r_a`.
+    pub fn new(pattern: &WeavePattern, r_e: f32, r_a: f32) -> Self {
+        let (ne, na) = (pattern.n_e(), pattern.n_a());
+        let h = CRIMP * 0.5 * (r_e + r_a);
+        let mut yarns = Vec::with_capacity(ne + na);
+        for i in 0..ne {
+            let raw: Vec<f32> =
+                (0..na * CTRL_PER_CELL).map(|k| if pattern.get(i, k / CTRL_PER_CELL) { h } else { -h }).collect();
+            yarns.push(YarnCurve::new(Family::Weft, i, r_e, smooth_periodic(&raw)));
+        }
+        for j in 0..na {
+            let raw: Vec<f32> =
+                (0..ne * CTRL_PER_CELL).map(|k| if pattern.get(k / CTRL_PER_CELL, j) { -h } else { h }).collect();
+            yarns.push(YarnCurve::new(Family::Warp, j, r_a, smooth_periodic(&raw)));
+        }
+        YarnSet { yarns, tile_x: na as f32 * PITCH, tile_y: ne as f32 * PITCH, h }
+    }
+
+    /// Highest point of any tube (for bounding the cloth slab).
+    pub fn z_max(&self) -> f32 {
+        self.yarns.iter().map(|y| y.radius).fold(0.0, f32::max) + self.h
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn weft_over_warp_exactly_where_p_is_one() {
+        for name in crate::pattern::PRESETS {
+            let p = WeavePattern::preset(name).unwrap();
+            let set = YarnSet::new(&p, 3.0, 3.5);
+            for i in 0..p.n_e() {
+                for j in 0..p.n_a() {
+                    let (x, y) = ((j as f32 + 0.5) * PITCH, (i as f32 + 0.5) * PITCH);
+                    let zw = set.yarns[i].height.eval(x).0;
+                    let za = set.yarns[p.n_e() + j].height.eval(y).0;
+                    assert_eq!(zw > za, p.get(i, j), "{name} cell ({i},{j}): weft {zw} warp {za}");
+                    assert!((zw - za).abs() > 0.5, "{name} ({i},{j}) crossing too flat");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn arc_length_exceeds_chord_and_closest_point_converges() {
+        let set = YarnSet::new(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0);
+        let y = &set.yarns[0];
+        assert!(y.arc_length(y.period()) > y.period());
+        let p = y.point(7.3) + Vec3::new(0.0, 0.5, 1.0);
+        let (d, s) = y.distance(p);
+        let brute = (0..20000).map(|k| (p - y.point(k as f32 * 1e-3)).length()).fold(f32::MAX, f32::min);
+        assert!((d - brute).abs() < 1e-3, "{d} vs {brute} at s={s}");
+    }
+}

@@ -1,0 +1,256 @@
+//! Linear-RGB images: sRGB PNG/JPEG and linear EXR reading and writing, with input validation.
+
+use std::path::Path;
+
+/// Errors reading or writing images.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    /// File missing or unreadable / undecodable.
+    #[error("cannot read image {path}: {msg}")]
+    Read {
+        /// File.
+        path: String,
+        /// Why.
+        msg: String,
+    },
+    /// Too small to hold any yarn structure.
+    #[error("image {path} is {w}x{h}; at least {min}x{min} pixels are needed")]
+    TooSmall {
+        /// File.
+        path: String,
+        /// Width.
+        w: u32,
+        /// Height.
+        h: u32,
+        /// Minimum side.
+        min: u32,
+    },
+    /// NaN or infinite pixel values.
+    #[error("image {path} has {count} NaN/Inf pixel values (first at x={x}, y={y})")]
+    NotFinite {
+        /// File.
+        path: String,
+        /// How many.
+        count: usize,
+        /// First x.
+        x: u32,
+        /// First y.
+        y: u32,
+    },
+    /// Writing failed.
+    #[error("cannot write image {path}: {msg}")]
+    Write {
+        /// File.
+        path: String,
+        /// Why.
+        msg: String,
+    },
+}
+
+/// A linear RGB `f32` image, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    /// Width.
+    pub width: u32,
+    /// Height.
+    pub height: u32,
+    /// Pixels, row-major.
+    pub data: Vec<[f32; 3]>,
+}
+
+/// sRGB encoding of a linear value (IEC 61966-2-1).
+pub fn linear_to_srgb(c: f32) -> f32 {
+    let c = c.clamp(0.0, 1.0);
+    if c <= 0.003_130_8 {
+        12.92 * c
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// sRGB decoding.
+pub fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.040_45 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+impl Image {
+    /// Wrap pixel data.
+    pub fn new(width: u32, height: u32, data: Vec<[f32; 3]>) -> Self {
+        assert_eq!(data.len(), (width * height) as usize);
+        Image { width, height, data }
+    }
+
+    /// Constant image.
+    pub fn filled(width: u32, height: u32, v: [f32; 3]) -> Self {
+        Image::new(width, height, vec![v; (width * height) as usize])
+    }
+
+    /// Pixel at (x, y).
+    pub fn get(&self, x: u32, y: u32) -> [f32; 3] {
+        self.data[(y * self.width + x) as usize]
+    }
+
+    /// 8-bit sRGB encoding.
+    pub fn to_srgb8(&self) -> image::RgbImage {
+        image::RgbImage::from_fn(self.width, self.height, |x, y| {
+            let p = self.get(x, y);
+            image::Rgb(p.map(|c| (linear_to_srgb(c) * 255.0 + 0.5) as u8))
+        })
+    }
+
+    /// From an 8-bit sRGB image.
+    pub fn from_srgb8(img: &image::RgbImage) -> Self {
+        let lut: Vec<f32> = (0..256).map(|i| srgb_to_linear(i as f32 / 255.0)).collect();
+        let data = img.pixels().map(|p| p.0.map(|c| lut[c as usize])).collect();
+        Image::new(img.width(), img.height(), data)
+    }
+
+    /// As an `image` crate linear f32 buffer.
+    pub fn to_rgb32f(&self) -> image::Rgb32FImage {
+        image::Rgb32FImage::from_fn(self.width, self.height, |x, y| image::Rgb(self.get(x, y)))
+    }
+
+    /// From an `image` crate linear f32 buffer.
+    pub fn from_rgb32f(img: &image::Rgb32FImage) -> Self {
+        Image::new(img.width(), img.height(), img.pixels().map(|p| p.0).collect())
+    }
+
+    /// Write an sRGB PNG atomically.
+    pub fn save_png(&self, path: &Path) -> Result<(), ImageError> {
+        let mut bytes = Vec::new();
+        self.to_srgb8()
+            .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+            .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })?;
+        crate::io::write_atomic(path, &bytes)
+            .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })
+    }
+
+    /// Write a linear EXR (written to a temporary name, then renamed).
+    pub fn save_exr(&self, path: &Path) -> Result<(), ImageError> {
+        let tmp = crate::io::temp_path(path);
+        let w = self.width as usize;
+        exr::prelude::write_rgb_file(&tmp, w, self.height as usize, |x, y| {
+            let p = self.data[y * w + x];
+            (p[0], p[1], p[2])
+        })
+        .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })?;
+        std::fs::rename(&tmp, path)
+            .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })
+    }
+
+    /// Read PNG/JPEG (sRGB-decoded; 8/16-bit, grey or RGB(A)) or EXR (linear); rejects tiny
+    /// images and NaN/Inf values.
+    pub fn load(path: &Path, min_side: u32) -> Result<Self, ImageError> {
+        let p = path.display().to_string();
+        let read_err = |msg: String| ImageError::Read { path: p.clone(), msg };
+        if !path.exists() {
+            return Err(read_err("file not found".into()));
+        }
+        let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_lowercase();
+        let img = if ext == "exr" {
+            let r = exr::prelude::read_first_rgba_layer_from_file(
+                path,
+                |res, _| (res.width(), vec![[0f32; 3]; res.width() * res.height()]),
+                |(w, buf): &mut (usize, Vec<[f32; 3]>), pos, (r, g, b, _a): (f32, f32, f32, f32)| {
+                    buf[pos.y() * *w + pos.x()] = [r, g, b]
+                },
+            )
+            .map_err(|e| read_err(e.to_string()))?;
+            let size = r.layer_data.size;
+            let (_, data) = r.layer_data.channel_data.pixels;
+            Image::new(size.width() as u32, size.height() as u32, data)
+        } else {
+            let dynimg = image::ImageReader::open(path)
+                .map_err(|e| read_err(e.to_string()))?
+                .with_guessed_format()
+                .map_err(|e| read_err(e.to_string()))?
+                .decode()
+                .map_err(|e| read_err(e.to_string()))?;
+            use image::DynamicImage as D;
+            match &dynimg {
+                D::ImageRgb32F(_) | D::ImageRgba32F(_) => Image::from_rgb32f(&dynimg.to_rgb32f()),
+                D::ImageLuma16(_) | D::ImageLumaA16(_) | D::ImageRgb16(_) | D::ImageRgba16(_) => {
+                    let img = dynimg.to_rgb16();
+                    let data = img.pixels().map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0))).collect();
+                    Image::new(img.width(), img.height(), data)
+                }
+                _ => Image::from_srgb8(&dynimg.to_rgb8()),
+            }
+        };
+        if img.width < min_side || img.height < min_side {
+            return Err(ImageError::TooSmall { path: p, w: img.width, h: img.height, min: min_side });
+        }
+        img.check_finite(&p)?;
+        Ok(img)
+    }
+
+    /// Error if any value is NaN/Inf.
+    pub fn check_finite(&self, name: &str) -> Result<(), ImageError> {
+        let bad: Vec<usize> =
+            self.data.iter().enumerate().filter(|(_, p)| p.iter().any(|c| !c.is_finite())).map(|(i, _)| i).collect();
+        if let Some(&i) = bad.first() {
+            return Err(ImageError::NotFinite {
+                path: name.to_string(),
+                count: bad.len(),
+                x: i as u32 % self.width,
+                y: i as u32 / self.width,
+            });
+        }
+        Ok(())
+    }
+
+    /// Root-mean-square difference.
+    pub fn rmse(&self, other: &Image) -> f32 {
+        assert_eq!((self.width, self.height), (other.width, other.height));
+        let s: f64 = self
+            .data
+            .iter()
+            .zip(&other.data)
+            .map(|(a, b)| (0..3).map(|k| ((a[k] - b[k]) as f64).powi(2)).sum::<f64>())
+            .sum();
+        (s / (self.data.len() * 3) as f64).sqrt() as f32
+    }
+
+    /// PSNR in dB of sRGB-encoded values (peak 1).
+    pub fn psnr_srgb(&self, other: &Image) -> f32 {
+        let s: f64 = self
+            .data
+            .iter()
+            .zip(&other.data)
+            .map(|(a, b)| (0..3).map(|k| ((linear_to_srgb(a[k]) - linear_to_srgb(b[k])) as f64).powi(2)).sum::<f64>())
+            .sum();
+        let mse = s / (self.data.len() * 3) as f64;
+        (10.0 * (1.0 / mse.max(1e-12)).log10()) as f32
+    }
+
+    /// Mean value per channel.
+    pub fn mean(&self) -> [f32; 3] {
+        let n = self.data.len() as f32;
+        let mut m = [0.0; 3];
+        for p in &self.data {
+            (0..3).for_each(|k| m[k] += p[k]);
+        }
+        m.map(|v| v / n)
+    }
+
+    /// Place images side by side (same height), separated by `gap` black pixels.
+    pub fn hstack(images: &[&Image], gap: u32) -> Image {
+        let h = images.iter().map(|i| i.height).max().unwrap_or(1);
+        let w: u32 = images.iter().map(|i| i.width).sum::<u32>() + gap * (images.len() as u32).saturating_sub(1);
+        let mut out = Image::filled(w, h, [0.0; 3]);
+        let mut x0 = 0;
+        for img in images {
+            for y in 0..img.height {
+                for x in 0..img.width {
+                    out.data[(y * w + x0 + x) as usize] = img.get(x, y);
+                }
+            }
+            x0 += img.width + gap;
+        }
+        out
+    }
+}

@@ -1,0 +1,120 @@
+//! `woven` command-line interface: parses arguments and calls the library.
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use woven::cli;
+
+#[derive(Parser)]
+#[command(
+    name = "woven",
+    version,
+    about = "Woven cloth from one close-up photo: pattern, yarn geometry, BYSDF appearance"
+)]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Print a complete parameter file (JSON) for a weave preset.
+    Params {
+        /// Weave preset, text grid (1100/0110/…), 0/1 text file or PNG.
+        #[arg(long, default_value = "twill22")]
+        preset: String,
+        /// Rotate the pattern by 90°.
+        #[arg(long, default_value_t = 0)]
+        rotate: u32,
+        /// Named light rig: default, front, back, both, sides.
+        #[arg(long, default_value = "default")]
+        lights: String,
+    },
+    /// Render a parameter file to PNG (sRGB) and optionally EXR (linear).
+    Render {
+        /// Parameter file (from `woven params` or `woven fit`).
+        #[arg(long)]
+        params: PathBuf,
+        /// Output PNG.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write linear EXR.
+        #[arg(long)]
+        exr: Option<PathBuf>,
+        /// Override image width.
+        #[arg(long)]
+        width: Option<u32>,
+        /// Override image height.
+        #[arg(long)]
+        height: Option<u32>,
+        /// Override samples per pixel.
+        #[arg(long)]
+        spp: Option<u32>,
+        /// Override the seed.
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Override the light rig: default, front, back, both, sides.
+        #[arg(long)]
+        lights: Option<String>,
+        /// Override the number of pattern repeats across the image.
+        #[arg(long)]
+        tiles: Option<f32>,
+        /// Override the camera tilt in degrees (perspective view).
+        #[arg(long)]
+        tilt: Option<f32>,
+        /// Worker threads.
+        #[arg(long)]
+        threads: Option<usize>,
+    },
+    /// Render the example scenes into a folder (the embedded-default job until `fit` lands).
+    Demo {
+        /// Output folder.
+        #[arg(long, default_value = "out/demo")]
+        out: PathBuf,
+        /// Image size.
+        #[arg(long, default_value_t = 256)]
+        size: u32,
+        /// Samples per pixel.
+        #[arg(long, default_value_t = 16)]
+        spp: u32,
+    },
+    /// Forward-model benchmark: time vs error, threads, re-shading, skips. Writes markdown.
+    Bench {
+        /// Markdown output (appends/replaces the forward-model section).
+        #[arg(long, default_value = "docs/benchmarks.md")]
+        out: PathBuf,
+        /// Quick run (fewer repetitions, lower reference spp).
+        #[arg(long)]
+        quick: bool,
+    },
+    /// Numerical stress test of the BYSDF and its derivatives.
+    Stress {
+        /// Number of random evaluations.
+        #[arg(long, default_value_t = 10_000_000)]
+        count: u64,
+        /// Markdown output.
+        #[arg(long, default_value = "docs/benchmarks.md")]
+        out: PathBuf,
+        /// Seed.
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+    },
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.cmd {
+        Cmd::Params { preset, rotate, lights } => {
+            print!("{}", cli::params_json(&preset, rotate, &lights)?);
+            Ok(())
+        }
+        Cmd::Render { params, out, exr, width, height, spp, seed, lights, tiles, tilt, threads } => {
+            let o = cli::RenderOverrides { width, height, spp, seed, lights, tiles, tilt };
+            cli::render_file(&params, &out, exr.as_deref(), &o, threads)
+                .with_context(|| format!("rendering {}", params.display()))
+        }
+        Cmd::Demo { out, size, spp } => cli::demo(&out, size, spp),
+        Cmd::Bench { out, quick } => woven::bench::run(&out, quick),
+        Cmd::Stress { count, out, seed } => woven::stress::run(count, seed, &out),
+    }
+}

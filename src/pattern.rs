@@ -1,0 +1,312 @@
+//! Binary weave patterns `P` (pipeline.md §0): `n_e` rows (weft yarns, along image x) × `n_a`
+//! columns (warp yarns, along image y); `P[i][j] = 1` means weft `i` lies over warp `j`.
+
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use std::fmt;
+use std::path::Path;
+
+/// Largest pattern side accepted.
+pub const MAX_SIDE: usize = 64;
+
+/// Errors for malformed patterns.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PatternError {
+    /// No rows or no columns.
+    #[error("weave pattern is empty")]
+    Empty,
+    /// Rows of different lengths.
+    #[error("weave pattern is ragged: row {row} has {len} cells, row 0 has {expected}")]
+    Ragged {
+        /// Offending row.
+        row: usize,
+        /// Its length.
+        len: usize,
+        /// Length of row 0.
+        expected: usize,
+    },
+    /// A character other than 0/1.
+    #[error("weave pattern has a non-binary cell {found:?} at row {row}, column {col} (only 0 and 1 allowed)")]
+    NonBinary {
+        /// Row.
+        row: usize,
+        /// Column.
+        col: usize,
+        /// The character found.
+        found: char,
+    },
+    /// More than 64 rows or columns.
+    #[error("weave pattern is {rows}x{cols}; at most {MAX_SIDE}x{MAX_SIDE} is supported")]
+    TooLarge {
+        /// Rows.
+        rows: usize,
+        /// Columns.
+        cols: usize,
+    },
+    /// Unknown preset name.
+    #[error("unknown weave preset `{0}`; known: plain, basket2, twill21, twill22, twill31, satin4, satin5, satin8")]
+    UnknownPreset(String),
+    /// Image could not be read.
+    #[error("cannot read pattern image: {0}")]
+    Image(String),
+}
+
+/// A binary weave pattern, always stored reduced to its minimum repeat.
+#[derive(Clone, PartialEq, Eq, Hash)]
+pub struct WeavePattern {
+    rows: usize,
+    cols: usize,
+    cells: Vec<bool>,
+}
+
+/// Names of the built-in presets.
+pub const PRESETS: &[&str] = &["plain", "basket2", "twill21", "twill22", "twill31", "satin4", "satin5", "satin8"];
+
+impl WeavePattern {
+    /// Build from rows of booleans; validates and reduces to the minimum repeat.
+    pub fn from_rows(rows: &[Vec<bool>]) -> Result<Self, PatternError> {
+        let p = Self::from_rows_unreduced(rows)?;
+        Ok(p.reduced())
+    }
+
+    /// Build without reducing (for tiles that must keep their size).
+    pub fn from_rows_unreduced(rows: &[Vec<bool>]) -> Result<Self, PatternError> {
+        if rows.is_empty() || rows[0].is_empty() {
+            return Err(PatternError::Empty);
+        }
+        let cols = rows[0].len();
+        for (i, r) in rows.iter().enumerate() {
+            if r.len() != cols {
+                return Err(PatternError::Ragged { row: i, len: r.len(), expected: cols });
+            }
+        }
+        if rows.len() > MAX_SIDE || cols > MAX_SIDE {
+            return Err(PatternError::TooLarge { rows: rows.len(), cols });
+        }
+        Ok(WeavePattern { rows: rows.len(), cols, cells: rows.concat() })
+    }
+
+    /// Parse `1100/0110/0011/1001` (rows separated by `/`, `,`, `;` or newlines; spaces ignored).
+    pub fn parse(text: &str) -> Result<Self, PatternError> {
+        let mut rows = Vec::new();
+        for line in text.split(['/', ',', ';', '\n']) {
+            let line: String = line.chars().filter(|c| !c.is_whitespace()).collect();
+            if line.is_empty() {
+                continue;
+            }
+            let mut row = Vec::new();
+            for (col, ch) in line.chars().enumerate() {
+                match ch {
+                    '0' => row.push(false),
+                    '1' => row.push(true),
+                    found => return Err(PatternError::NonBinary { row: rows.len(), col, found }),
+                }
+            }
+            rows.push(row);
+        }
+        Self::from_rows(&rows)
+    }
+
+    /// Resolve a command-line spec: a preset name, a text grid, a text file of 0/1 rows, or a PNG.
+    pub fn from_spec(spec: &str) -> Result<Self, PatternError> {
+        if PRESETS.contains(&spec) {
+            return Self::preset(spec);
+        }
+        let path = Path::new(spec);
+        if path.is_file() {
+            let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_lowercase();
+            if ext == "png" || ext == "jpg" || ext == "jpeg" {
+                return Self::from_image(path);
+            }
+            let text = std::fs::read_to_string(path).map_err(|e| PatternError::Image(e.to_string()))?;
+            return Self::parse(&text);
+        }
+        if spec.chars().all(|c| "01/,;\n ".contains(c)) {
+            return Self::parse(spec);
+        }
+        Err(PatternError::UnknownPreset(spec.to_string()))
+    }
+
+    /// Threshold a (grey) image at its mean: bright pixel = weft over (custom/logo patterns).
+    pub fn from_image(path: &Path) -> Result<Self, PatternError> {
+        let img = image::open(path).map_err(|e| PatternError::Image(e.to_string()))?.to_luma8();
+        let (w, h) = img.dimensions();
+        if w as usize > MAX_SIDE || h as usize > MAX_SIDE {
+            return Err(PatternError::TooLarge { rows: h as usize, cols: w as usize });
+        }
+        let mean = img.pixels().map(|p| p.0[0] as f64).sum::<f64>() / (w * h).max(1) as f64;
+        let rows: Vec<Vec<bool>> =
+            (0..h).map(|y| (0..w).map(|x| img.get_pixel(x, y).0[0] as f64 > mean).collect()).collect();
+        Self::from_rows(&rows)
+    }
+
+    /// Built-in presets (and `NAME` rotated by 90° via [`WeavePattern::rotated90`]).
+    pub fn preset(name: &str) -> Result<Self, PatternError> {
+        let (n, f): (usize, Box<dyn Fn(usize, usize) -> bool>) = match name {
+            "plain" => (2, Box::new(|i, j| (i + j) % 2 == 0)),
+            "basket2" => (4, Box::new(|i, j| (i / 2 + j / 2) % 2 == 0)),
+            "twill21" => (3, Box::new(|i, j| (j + 3 - i % 3) % 3 < 2)),
+            "twill22" => (4, Box::new(|i, j| (j + 4 - i % 4) % 4 < 2)),
+            "twill31" => (4, Box::new(|i, j| (j + 4 - i % 4) % 4 < 3)),
+            // 4-end broken "satin" (crowfoot): one binding point per row at columns 0, 1, 3, 2.
+            "satin4" => (4, Box::new(|i, j| j != [0, 1, 3, 2][i])),
+            "satin5" => (5, Box::new(|i, j| j != (i * 2) % 5)),
+            "satin8" => (8, Box::new(|i, j| j != (i * 3) % 8)),
+            other => return Err(PatternError::UnknownPreset(other.to_string())),
+        };
+        let rows: Vec<Vec<bool>> = (0..n).map(|i| (0..n).map(|j| f(i, j)).collect()).collect();
+        Self::from_rows(&rows)
+    }
+
+    /// Rotate by 90°: wefts become warps (transpose, then invert so "weft over" keeps its meaning
+    /// for the new wefts).
+    pub fn rotated90(&self) -> Self {
+        let rows: Vec<Vec<bool>> =
+            (0..self.cols).map(|j| (0..self.rows).map(|i| !self.get(self.rows - 1 - i, j)).collect()).collect();
+        Self::from_rows(&rows).expect("rotation keeps a valid pattern")
+    }
+
+    /// `n_e`: number of weft yarns in the repeat.
+    pub fn n_e(&self) -> usize {
+        self.rows
+    }
+
+    /// `n_a`: number of warp yarns in the repeat.
+    pub fn n_a(&self) -> usize {
+        self.cols
+    }
+
+    /// `P[i][j]`, indices taken modulo the repeat.
+    pub fn get(&self, i: usize, j: usize) -> bool {
+        self.cells[(i % self.rows) * self.cols + j % self.cols]
+    }
+
+    /// Flip one cell (for the annealer).
+    pub fn toggled(&self, i: usize, j: usize) -> Self {
+        let mut p = self.clone();
+        let k = i * self.cols + j;
+        p.cells[k] = !p.cells[k];
+        p
+    }
+
+    /// Rows as booleans.
+    pub fn rows(&self) -> Vec<Vec<bool>> {
+        (0..self.rows).map(|i| (0..self.cols).map(|j| self.get(i, j)).collect()).collect()
+    }
+
+    /// Smallest (rows', cols') with rows' | rows, cols' | cols such that P repeats with that period.
+    pub fn reduced(&self) -> Self {
+        let r = (1..=self.rows)
+            .find(|&p| {
+                self.rows % p == 0
+                    && (0..self.rows).all(|i| (0..self.cols).all(|j| self.get(i, j) == self.get(i + p, j)))
+            })
+            .unwrap_or(self.rows);
+        let c = (1..=self.cols)
+            .find(|&p| {
+                self.cols % p == 0
+                    && (0..self.rows).all(|i| (0..self.cols).all(|j| self.get(i, j) == self.get(i, j + p)))
+            })
+            .unwrap_or(self.cols);
+        let rows: Vec<Vec<bool>> = (0..r).map(|i| (0..c).map(|j| self.get(i, j)).collect()).collect();
+        WeavePattern { rows: r, cols: c, cells: rows.concat() }
+    }
+
+    /// Equal up to a cyclic shift (the same fabric with another origin).
+    pub fn equivalent(&self, other: &Self) -> bool {
+        if self.rows != other.rows || self.cols != other.cols {
+            return false;
+        }
+        (0..self.rows).any(|di| {
+            (0..self.cols)
+                .any(|dj| (0..self.rows).all(|i| (0..self.cols).all(|j| self.get(i + di, j + dj) == other.get(i, j))))
+        })
+    }
+
+    /// `true` when some weft or warp never changes side: it would float over the whole fabric.
+    pub fn has_unbound_yarn(&self) -> bool {
+        let weft = (0..self.rows).any(|i| (0..self.cols).all(|j| self.get(i, j) == self.get(i, 0)));
+        let warp = (0..self.cols).any(|j| (0..self.rows).all(|i| self.get(i, j) == self.get(0, j)));
+        weft || warp
+    }
+}
+
+impl fmt::Display for WeavePattern {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let s: Vec<String> =
+            self.rows().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
+        write!(f, "{}", s.join("/"))
+    }
+}
+
+impl fmt::Debug for WeavePattern {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "WeavePattern({self})")
+    }
+}
+
+impl Serialize for WeavePattern {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let rows: Vec<String> = self.to_string().split('/').map(str::to_string).collect();
+        rows.serialize(s)
+    }
+}
+
+impl<'de> Deserialize<'de> for WeavePattern {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let rows = Vec::<String>::deserialize(d)?;
+        WeavePattern::parse(&rows.join("/")).map_err(|e| serde::de::Error::custom(format!("pattern: {e}")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_are_valid_and_minimal() {
+        let sizes = [2, 4, 3, 4, 4, 4, 5, 8];
+        for (name, n) in PRESETS.iter().zip(sizes) {
+            let p = WeavePattern::preset(name).unwrap();
+            assert_eq!((p.n_e(), p.n_a()), (n, n), "{name}: {p}");
+            assert!(!p.has_unbound_yarn(), "{name} has a floating yarn: {p}");
+        }
+        assert_eq!(WeavePattern::preset("plain").unwrap().to_string(), "10/01");
+        assert_eq!(WeavePattern::preset("twill22").unwrap().to_string(), "1100/0110/0011/1001");
+    }
+
+    #[test]
+    fn satin_has_one_binding_point_per_row_and_column() {
+        for name in ["satin4", "satin5", "satin8"] {
+            let p = WeavePattern::preset(name).unwrap();
+            for i in 0..p.n_e() {
+                assert_eq!((0..p.n_a()).filter(|&j| !p.get(i, j)).count(), 1, "{name} row {i}");
+            }
+            for j in 0..p.n_a() {
+                assert_eq!((0..p.n_e()).filter(|&i| !p.get(i, j)).count(), 1, "{name} col {j}");
+            }
+        }
+    }
+
+    #[test]
+    fn parse_reduce_and_errors() {
+        let p = WeavePattern::parse("1010/0101/1010/0101").unwrap();
+        assert_eq!(p.to_string(), "10/01");
+        assert_eq!(WeavePattern::parse(""), Err(PatternError::Empty));
+        assert!(matches!(WeavePattern::parse("10/1"), Err(PatternError::Ragged { row: 1, .. })));
+        assert!(matches!(WeavePattern::parse("12/01"), Err(PatternError::NonBinary { found: '2', .. })));
+        let big = vec!["01".repeat(33); 2].join("/");
+        assert!(matches!(WeavePattern::parse(&big), Err(PatternError::TooLarge { .. })));
+        assert!(WeavePattern::from_spec("nonsense").is_err());
+    }
+
+    #[test]
+    fn rotation_and_equivalence() {
+        let t = WeavePattern::preset("twill31").unwrap();
+        let r = t.rotated90();
+        assert_eq!((r.n_e(), r.n_a()), (4, 4));
+        assert!(!r.has_unbound_yarn());
+        assert!(r.rotated90().rotated90().rotated90() == t);
+        let shifted = WeavePattern::parse("0110/0011/1001/1100").unwrap();
+        assert!(shifted.equivalent(&WeavePattern::preset("twill22").unwrap()));
+    }
+}

@@ -1,0 +1,605 @@
+//! Image preparation (paper §4, design `pipeline.md` §3): turn one close-up photo of a woven
+//! fabric into an axis-aligned, regularized image plus the yarn grid and the minimum repeating
+//! pattern size.
+//!
+//! Steps, in the order [`prepare`] runs them:
+//! 1. [`rectify`] — Laplacian + Radon transform → dominant yarn angle, rotation, crop; then a
+//!    RANSAC vanishing-point fit removes slight perspective (§4.1, [CDI14]).
+//! 2. A first pitch estimate from the integral projections of the rectified image ([`grid`]); its
+//!    autocorrelation is the *periodicity strength* that rejects images without yarns.
+//! 3. Gaussian blur with σ = pitch/16 ([`regularize`]).
+//! 4. [`period`] — superposed distance matching functions of all rows / columns → the
+//!    minimum pattern size in pixels (§4.3, [ANB12]).
+//! 5. Kernel PCA on period-sized tiles → the regularized ("ideal") image ([`regularize`], §4.2).
+//! 6. [`grid`] — integral projections of the regularized image → yarn boundaries, pitch and
+//!    phase; `n_a = round(period_x / pitch_x)`, `n_e = round(period_y / pitch_y)` (§4.4).
+//!
+//! Conventions: images are linear RGB `f32` ([`Rgb32FImage`]); the pattern has `n_e` rows (weft
+//! yarns, running along image x) and `n_a` columns (warp yarns, running along image y).
+
+pub mod grid;
+pub mod image_ops;
+pub mod linalg;
+pub mod period;
+pub mod rectify;
+pub mod regularize;
+#[cfg(test)]
+mod testutil;
+
+use image::Rgb32FImage;
+use serde::Serialize;
+
+pub use linalg::Homography;
+pub use regularize::KpcaParams;
+
+use grid::{analyze_axis, AxisGrid};
+use image_ops::{blur_gray, blur_rgb, Gray};
+use period::detect_period;
+
+/// Smallest accepted image side, in pixels.
+pub const MIN_SIZE: u32 = 32;
+
+/// Errors of the preparation stage.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PrepError {
+    /// The image (or what is left after rectification) is smaller than [`MIN_SIZE`].
+    #[error("image too small: {width}x{height} px (need at least {min} px per side)")]
+    TooSmall {
+        /// Width in pixels.
+        width: u32,
+        /// Height in pixels.
+        height: u32,
+        /// The minimum side.
+        min: u32,
+    },
+    /// A pixel holds NaN or ±∞.
+    #[error("image has a non-finite (NaN or infinite) value at pixel ({x}, {y})")]
+    NonFinite {
+        /// Column of the first offending pixel.
+        x: u32,
+        /// Row of the first offending pixel.
+        y: u32,
+    },
+    /// Uniform image, random noise, or anything else without a periodic grid of yarns.
+    #[error("no periodic yarn structure found")]
+    NoStructure,
+}
+
+/// Options of [`prepare`].
+#[derive(Clone, Debug)]
+pub struct PrepOptions {
+    /// Rotate so that yarns are axis-aligned (Radon transform).
+    pub rectify: bool,
+    /// Also remove slight perspective (needs `rectify`).
+    pub perspective: bool,
+    /// Run Kernel PCA (otherwise the regularized image is just the blurred one).
+    pub regularize: bool,
+    /// Kernel PCA settings.
+    pub kpca: KpcaParams,
+    /// Minimum normalised autocorrelation at the pitch of both integral projections; below it the
+    /// image is rejected with [`PrepError::NoStructure`].
+    pub min_structure: f32,
+    /// Minimum DMF correlation of a copy for it to count as a repeat (else: whole image).
+    pub min_period_corr: f32,
+    /// Smallest yarn pitch considered, pixels.
+    pub min_pitch: f32,
+}
+
+impl Default for PrepOptions {
+    fn default() -> Self {
+        Self {
+            rectify: true,
+            perspective: true,
+            regularize: true,
+            kpca: KpcaParams::default(),
+            min_structure: 0.35,
+            min_period_corr: 0.5,
+            min_pitch: 4.0,
+        }
+    }
+}
+
+/// An axis-aligned pixel rectangle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct CropRect {
+    /// Left column.
+    pub x: u32,
+    /// Top row.
+    pub y: u32,
+    /// Width.
+    pub w: u32,
+    /// Height.
+    pub h: u32,
+}
+
+/// Output of [`prepare`]. All geometry is in pixels of the rectified image.
+#[derive(Clone, Debug, Serialize)]
+pub struct Prepared {
+    /// Rotated, perspective-corrected and cropped input.
+    #[serde(skip)]
+    pub rectified: Rgb32FImage,
+    /// Blurred + Kernel-PCA regularized version of `rectified` (same size).
+    #[serde(skip)]
+    pub regularized: Rgb32FImage,
+    /// Size of `rectified`.
+    pub width: u32,
+    /// Size of `rectified`.
+    pub height: u32,
+    /// Dominant weft direction in the input, degrees in [−45, 45) (weft along `(cos, sin)`).
+    pub angle_deg: f32,
+    /// Maps rectified pixel `(u, v, 1)` to input pixel coordinates.
+    pub homography: Homography,
+    /// Whether a perspective correction is part of `homography`.
+    pub perspective_applied: bool,
+    /// Warp yarn pitch (centre to centre), i.e. spacing of boundaries along x.
+    pub pitch_x: f32,
+    /// Weft yarn pitch, spacing of boundaries along y.
+    pub pitch_y: f32,
+    /// x of the first warp boundary, in `[0, pitch_x)`.
+    pub phase_x: f32,
+    /// y of the first weft boundary, in `[0, pitch_y)`.
+    pub phase_y: f32,
+    /// Minimum pattern width in pixels (whole width when `repeated_x` is false).
+    pub period_x: f32,
+    /// Minimum pattern height in pixels (whole height when `repeated_y` is false).
+    pub period_y: f32,
+    /// Whether a repeat was found along x.
+    pub repeated_x: bool,
+    /// Whether a repeat was found along y.
+    pub repeated_y: bool,
+    /// DMF correlation of the repeat along x / y (0 when not repeated).
+    pub period_strength: [f32; 2],
+    /// Periodicity strength of the integral projections along x / y.
+    pub grid_strength: [f32; 2],
+    /// Number of weft yarns (pattern rows).
+    pub n_e: usize,
+    /// Number of warp yarns (pattern columns).
+    pub n_a: usize,
+    /// Minimum-pattern crop aligned to the yarn boundaries: `n_a` pitches by `n_e` pitches.
+    pub crop: CropRect,
+}
+
+fn check_input(img: &Rgb32FImage) -> Result<(), PrepError> {
+    let (w, h) = img.dimensions();
+    if w < MIN_SIZE || h < MIN_SIZE {
+        return Err(PrepError::TooSmall {
+            width: w,
+            height: h,
+            min: MIN_SIZE,
+        });
+    }
+    if let Some(i) = img.as_raw().iter().position(|v| !v.is_finite()) {
+        let p = (i / 3) as u32;
+        return Err(PrepError::NonFinite { x: p % w, y: p / w });
+    }
+    Ok(())
+}
+
+/// Start and length of the crop along one axis: `n` pitches starting on a yarn boundary, the
+/// candidate closest to the image centre.
+fn crop_axis(phase: f32, pitch: f32, n: usize, extent: u32) -> (u32, u32) {
+    let len = ((n as f32 * pitch).round() as u32).clamp(1, extent);
+    let mut best: Option<(f32, u32)> = None;
+    let mut k = -1i32;
+    loop {
+        let s = phase + k as f32 * pitch;
+        if s + len as f32 > extent as f32 + 0.5 {
+            break;
+        }
+        if s >= -0.5 {
+            let d = (s + len as f32 / 2.0 - extent as f32 / 2.0).abs();
+            let start = (s.round().max(0.0) as u32).min(extent - len);
+            if best.is_none_or(|(bd, _)| d < bd) {
+                best = Some((d, start));
+            }
+        }
+        k += 1;
+    }
+    (best.map_or((extent - len) / 2, |b| b.1), len)
+}
+
+/// Runs the whole preparation stage on a linear RGB image. See the module docs.
+///
+/// Errors: [`PrepError::TooSmall`] (< 32 px), [`PrepError::NonFinite`], and
+/// [`PrepError::NoStructure`] ("no periodic yarn structure found") for uniform images, noise or
+/// anything whose integral projections are not periodic.
+pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepError> {
+    check_input(img)?;
+    // 1. Rectification.
+    let rect = if opts.rectify {
+        rectify::rectify(img, opts.perspective)
+    } else {
+        rectify::Rectified {
+            image: img.clone(),
+            angle_deg: 0.0,
+            homography: linalg::IDENTITY,
+            perspective_applied: false,
+        }
+    };
+    let r = &rect.image;
+    let (w, h) = r.dimensions();
+    if w < MIN_SIZE || h < MIN_SIZE {
+        return Err(PrepError::TooSmall {
+            width: w,
+            height: h,
+            min: MIN_SIZE,
+        });
+    }
+    // 2. First pitch estimate and periodicity strength (before any regularization, which
+    //    could impose structure on noise).
+    let g = Gray::from_rgb(r);
+    let (_, std) = g.mean_std();
+    if std < 1e-4 {
+        return Err(PrepError::NoStructure);
+    }
+    let gb = blur_gray(&g, 1.0);
+    let min_pitch = opts.min_pitch as f64;
+    let ax0 = analyze_axis(&gb, true, min_pitch).ok_or(PrepError::NoStructure)?;
+    let ay0 = analyze_axis(&gb, false, min_pitch).ok_or(PrepError::NoStructure)?;
+    if ax0.strength < opts.min_structure || ay0.strength < opts.min_structure {
+        return Err(PrepError::NoStructure);
+    }
+    // 3. Blur, σ = pitch / 16.
+    let pitch0 = 0.5 * (ax0.pitch + ay0.pitch);
+    let blurred = blur_rgb(r, pitch0 / 16.0);
+    // 4. Minimum pattern size (DMF).
+    let (per_x, per_y) = detect_period(
+        &Gray::from_rgb(&blurred),
+        0.75 * ax0.pitch as f64,
+        0.75 * ay0.pitch as f64,
+        opts.min_period_corr as f64,
+    );
+    // 5. Kernel PCA.
+    let regularized = if opts.regularize {
+        regularize::kpca_tiles(&blurred, per_x.period, per_y.period, &opts.kpca)
+    } else {
+        blurred
+    };
+    // 6. Grid on the regularized image (falls back to the first estimate if inconsistent).
+    let gr = Gray::from_rgb(&regularized);
+    let pick = |a: Option<AxisGrid>, a0: &AxisGrid| -> AxisGrid {
+        a.filter(|a| (a.pitch / a0.pitch - 1.0).abs() < 0.2)
+            .unwrap_or_else(|| a0.clone())
+    };
+    let ax = pick(analyze_axis(&gr, true, min_pitch), &ax0);
+    let ay = pick(analyze_axis(&gr, false, min_pitch), &ay0);
+    let n_a = ((per_x.period / ax.pitch).round() as usize).max(1);
+    let n_e = ((per_y.period / ay.pitch).round() as usize).max(1);
+    let (cx, cw) = crop_axis(ax.phase, ax.pitch, n_a, w);
+    let (cy, ch) = crop_axis(ay.phase, ay.pitch, n_e, h);
+    Ok(Prepared {
+        rectified: rect.image.clone(),
+        regularized,
+        width: w,
+        height: h,
+        angle_deg: rect.angle_deg,
+        homography: rect.homography,
+        perspective_applied: rect.perspective_applied,
+        pitch_x: ax.pitch,
+        pitch_y: ay.pitch,
+        phase_x: ax.phase,
+        phase_y: ay.phase,
+        period_x: per_x.period,
+        period_y: per_y.period,
+        repeated_x: per_x.repeated,
+        repeated_y: per_y.repeated,
+        period_strength: [per_x.strength, per_y.strength],
+        grid_strength: [ax0.strength, ay0.strength],
+        n_e,
+        n_a,
+        crop: CropRect {
+            x: cx,
+            y: cy,
+            w: cw,
+            h: ch,
+        },
+    })
+}
+
+impl Prepared {
+    /// The rectified image with the yarn boundaries (red, 1 px) and the minimum-pattern box
+    /// (green, 2 px) drawn on it.
+    pub fn grid_overlay(&self) -> Rgb32FImage {
+        let mut img = self.rectified.clone();
+        let (w, h) = img.dimensions();
+        let red = image::Rgb([1.0f32, 0.05, 0.05]);
+        let green = image::Rgb([0.05f32, 1.0, 0.05]);
+        let lines = |phase: f32, pitch: f32, extent: u32| -> Vec<u32> {
+            let mut v = Vec::new();
+            if pitch <= 0.5 {
+                return v;
+            }
+            let mut p = phase;
+            while p < extent as f32 {
+                if p >= 0.0 {
+                    v.push((p.round() as u32).min(extent - 1));
+                }
+                p += pitch;
+            }
+            v
+        };
+        for x in lines(self.phase_x, self.pitch_x, w) {
+            for y in 0..h {
+                img.put_pixel(x, y, red);
+            }
+        }
+        for y in lines(self.phase_y, self.pitch_y, h) {
+            for x in 0..w {
+                img.put_pixel(x, y, red);
+            }
+        }
+        let c = self.crop;
+        for t in 0..2u32 {
+            let (x0, y0) = (c.x + t, c.y + t);
+            let x1 = (c.x + c.w).saturating_sub(1 + t).min(w - 1);
+            let y1 = (c.y + c.h).saturating_sub(1 + t).min(h - 1);
+            for x in x0.min(w - 1)..=x1 {
+                img.put_pixel(x, y0.min(h - 1), green);
+                img.put_pixel(x, y1, green);
+            }
+            for y in y0.min(h - 1)..=y1 {
+                img.put_pixel(x0.min(w - 1), y, green);
+                img.put_pixel(x1, y, green);
+            }
+        }
+        img
+    }
+
+    /// Everything except the images, as pretty JSON (for `prep.json`).
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("Prepared serializes")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::linalg::{apply, mat3_inv, mat3_mul, translation};
+    use super::testutil::*;
+    use super::*;
+
+    fn opts_no_persp() -> PrepOptions {
+        PrepOptions {
+            perspective: false,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn rotation_is_recovered_within_half_a_degree() {
+        let p = twill22();
+        for (i, &a) in [-15.0, -9.7, -3.2, 0.0, 0.8, 6.4, 12.5, 15.0]
+            .iter()
+            .enumerate()
+        {
+            let pitch = [12.0, 16.0, 20.0][i % 3];
+            let img = render_rotated(&p, pitch, 256, 256, a);
+            let r = rectify::rectify(&img, false);
+            assert!(
+                (r.angle_deg as f64 - a).abs() < 0.5,
+                "angle {a}: found {}",
+                r.angle_deg
+            );
+        }
+        // Plain weave and a non-square image.
+        let img = render_rotated(&plain(), 14.0, 300, 220, -11.0);
+        let r = rectify::rectify(&img, false);
+        assert!((r.angle_deg + 11.0).abs() < 0.5, "{}", r.angle_deg);
+    }
+
+    /// Camera homography K R K⁻¹ (tilt about x by `pitch_deg`, about y by `yaw_deg`), mapping flat
+    /// cloth pixels to image pixels.
+    fn camera(w: f64, h: f64, f: f64, pitch_deg: f64, yaw_deg: f64) -> Homography {
+        let (sp, cp) = pitch_deg.to_radians().sin_cos();
+        let (sy, cy) = yaw_deg.to_radians().sin_cos();
+        let rx = [[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]];
+        let ry = [[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]];
+        let k = [[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]];
+        let kinv = mat3_inv(&k).unwrap();
+        mat3_mul(&k, &mat3_mul(&mat3_mul(&rx, &ry), &kinv))
+    }
+
+    /// Angles (degrees) of the weft lines (t_y = const) and warp lines (t_x = const, measured from
+    /// the vertical) in output space, for `c` (output px → texture px) over an output of size w×h.
+    fn line_angles(c: &Homography, w: f64, h: f64) -> (Vec<f64>, Vec<f64>) {
+        let (_, ty0) = apply(c, w / 2.0, 0.0);
+        let (_, ty1) = apply(c, w / 2.0, h);
+        let (tx0, _) = apply(c, 0.0, h / 2.0);
+        let (tx1, _) = apply(c, w, h / 2.0);
+        let mut weft = Vec::new();
+        let mut warp = Vec::new();
+        for i in 0..5 {
+            let f = (i as f64 + 0.5) / 5.0;
+            // Line in texture space l → line in output space Cᵀ l; direction (b, −a).
+            for is_warp in [false, true] {
+                let l = if is_warp {
+                    [1.0, 0.0, -(tx0 + f * (tx1 - tx0))]
+                } else {
+                    [0.0, 1.0, -(ty0 + f * (ty1 - ty0))]
+                };
+                let a = c[0][0] * l[0] + c[1][0] * l[1] + c[2][0] * l[2];
+                let b = c[0][1] * l[0] + c[1][1] * l[1] + c[2][1] * l[2];
+                let mut ang = (-a).atan2(b).to_degrees();
+                if is_warp {
+                    ang -= 90.0;
+                }
+                let ang = (ang + 90.0).rem_euclid(180.0) - 90.0;
+                if is_warp {
+                    warp.push(ang);
+                } else {
+                    weft.push(ang);
+                }
+            }
+        }
+        (weft, warp)
+    }
+
+    fn spread(v: &[f64]) -> f64 {
+        v.iter().cloned().fold(f64::MIN, f64::max) - v.iter().cloned().fold(f64::MAX, f64::min)
+    }
+
+    #[test]
+    fn perspective_tilt_is_removed() {
+        let (w, h) = (320u32, 320u32);
+        for (k, &(tp, ty, rot)) in [(10.0, 0.0, 0.0), (-7.0, 6.0, 4.0), (3.0, -10.0, -2.0)]
+            .iter()
+            .enumerate()
+        {
+            let pat = if k == 1 { plain() } else { twill22() };
+            let pitch = 13.0;
+            let cam = camera(w as f64, h as f64, 1.1 * w as f64, tp, ty);
+            let (s, c) = (rot as f64).to_radians().sin_cos();
+            // Cloth frame → image: rotate about the centre, then the camera homography.
+            let rotm = mat3_mul(
+                &translation(w as f64 / 2.0, h as f64 / 2.0),
+                &mat3_mul(
+                    &[[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
+                    &translation(-(w as f64) / 2.0, -(h as f64) / 2.0),
+                ),
+            );
+            let to_img = mat3_mul(&cam, &rotm);
+            let to_tex = mat3_inv(&to_img).unwrap();
+            let img = render(&pat, pitch, w, h, |x, y| apply(&to_tex, x, y));
+            // Without correction the lines visibly converge (the test can fail).
+            let (weft0, warp0) = line_angles(&to_tex, w as f64, h as f64);
+            assert!(
+                spread(&weft0).max(spread(&warp0)) > 2.0,
+                "{weft0:?} {warp0:?}"
+            );
+            let pr = prepare(&img, &PrepOptions::default()).expect("prepare");
+            assert!(pr.perspective_applied, "case {k}");
+            let comp = mat3_mul(&to_tex, &pr.homography);
+            let (weft, warp) = line_angles(&comp, pr.width as f64, pr.height as f64);
+            assert!(
+                spread(&weft) < 0.5 && spread(&warp) < 0.5,
+                "case {k}: {weft:?} {warp:?}"
+            );
+            let worst = weft.iter().chain(&warp).fold(0.0f64, |m, a| m.max(a.abs()));
+            assert!(worst < 1.0, "case {k}: not axis aligned {weft:?} {warp:?}");
+        }
+    }
+
+    #[test]
+    fn pitch_and_pattern_size_for_four_weaves_at_three_scales() {
+        let cases: [(&str, Vec<Vec<u8>>); 4] = [
+            ("plain", plain()),
+            ("basket2", basket2()),
+            ("twill22", twill22()),
+            ("satin5", satin5()),
+        ];
+        for (name, p) in &cases {
+            let (ne, na) = (p.len(), p[0].len());
+            for (k, &pitch) in [12.0, 20.0, 32.0].iter().enumerate() {
+                let period = pitch * na.max(ne) as f64;
+                let size = ((2.3 * period / 0.95).ceil() as u32).max(256);
+                let angle = [2.5, -1.5, 0.0][k];
+                let img = render_rotated(p, pitch, size, size, angle);
+                let pr = prepare(&img, &PrepOptions::default())
+                    .unwrap_or_else(|e| panic!("{name} pitch {pitch}: {e}"));
+                let msg = format!("{name} pitch {pitch}: {}", pr.to_json());
+                assert!((pr.pitch_x as f64 / pitch - 1.0).abs() < 0.02, "{msg}");
+                assert!((pr.pitch_y as f64 / pitch - 1.0).abs() < 0.02, "{msg}");
+                assert_eq!((pr.n_e, pr.n_a), (ne, na), "{msg}");
+                assert!(pr.repeated_x && pr.repeated_y, "{msg}");
+            }
+        }
+    }
+
+    #[test]
+    fn single_repeat_image() {
+        let img = render_flat(&satin5(), 32.0, 160, 160);
+        let pr = prepare(&img, &PrepOptions::default()).expect("single repeat");
+        assert!(!pr.repeated_x && !pr.repeated_y, "{}", pr.to_json());
+        assert_eq!((pr.n_e, pr.n_a), (5, 5), "{}", pr.to_json());
+        assert!((pr.pitch_x / 32.0 - 1.0).abs() < 0.02, "{}", pr.to_json());
+        let img = render_flat(&twill22(), 20.0, 80, 80);
+        let pr = prepare(&img, &opts_no_persp()).expect("single twill repeat");
+        assert_eq!((pr.n_e, pr.n_a), (4, 4), "{}", pr.to_json());
+    }
+
+    #[test]
+    fn regularization_gains_psnr_on_noisy_blurred_input() {
+        let clean = render_flat(&twill22(), 12.0, 240, 240);
+        let noisy = add_noise(&blur_rgb(&clean, 1.0), 0.08, 7);
+        let base = psnr(&noisy, &clean);
+        // Direct call with the known pitch and period.
+        let reg = regularize::regularize(&noisy, 12.0, 48.0, 48.0, &KpcaParams::default());
+        let gain = psnr(&reg, &clean) - base;
+        assert!(gain >= 3.0, "direct: input {base:.2} dB, gain {gain:.2} dB");
+        // Whole chain without rectification (same pixel frame).
+        let opts = PrepOptions {
+            rectify: false,
+            ..Default::default()
+        };
+        let pr = prepare(&noisy, &opts).expect("prepare");
+        let gain = psnr(&pr.regularized, &clean) - base;
+        assert!(gain >= 3.0, "prepare: gain {gain:.2} dB; {}", pr.to_json());
+        // And the blur alone is not what gives the gain.
+        let blur_only = blur_rgb(&noisy, 12.0 / 16.0);
+        assert!(psnr(&pr.regularized, &clean) > psnr(&blur_only, &clean) + 1.0);
+    }
+
+    #[test]
+    fn uniform_and_noise_are_rejected() {
+        let msg = "no periodic yarn structure found";
+        let uni = Rgb32FImage::from_pixel(128, 96, image::Rgb([0.4, 0.5, 0.6]));
+        let e = prepare(&uni, &PrepOptions::default()).unwrap_err();
+        assert_eq!(e.to_string(), msg);
+        for seed in 0..4u64 {
+            let base = Rgb32FImage::from_pixel(200, 180, image::Rgb([0.5, 0.5, 0.5]));
+            let noise = add_noise(&base, 0.2, seed);
+            let e = prepare(&noise, &PrepOptions::default()).unwrap_err();
+            assert_eq!(e.to_string(), msg, "seed {seed}");
+            // Blurred noise (spatially correlated) too.
+            let e = prepare(&blur_rgb(&noise, 2.0), &PrepOptions::default()).unwrap_err();
+            assert_eq!(e.to_string(), msg, "blurred, seed {seed}");
+        }
+    }
+
+    #[test]
+    fn bad_inputs() {
+        let small = Rgb32FImage::new(31, 100);
+        assert!(matches!(
+            prepare(&small, &PrepOptions::default()),
+            Err(PrepError::TooSmall { width: 31, .. })
+        ));
+        let mut img = render_flat(&plain(), 12.0, 64, 64);
+        img.put_pixel(5, 7, image::Rgb([0.1, f32::NAN, 0.2]));
+        assert_eq!(
+            prepare(&img, &PrepOptions::default()).unwrap_err(),
+            PrepError::NonFinite { x: 5, y: 7 }
+        );
+        img.put_pixel(5, 7, image::Rgb([0.1, f32::INFINITY, 0.2]));
+        assert!(prepare(&img, &PrepOptions::default()).is_err());
+    }
+
+    #[test]
+    fn overlay_and_json() {
+        let img = render_flat(&twill22(), 16.0, 200, 200);
+        let pr = prepare(&img, &opts_no_persp()).unwrap();
+        let ov = pr.grid_overlay();
+        assert_eq!(ov.dimensions(), pr.rectified.dimensions());
+        let c = pr.crop;
+        assert_eq!(ov.get_pixel(c.x, c.y + c.h / 2).0, [0.05, 1.0, 0.05]);
+        assert!(c.x + c.w <= pr.width && c.y + c.h <= pr.height);
+        assert!((c.w as f32 - 4.0 * pr.pitch_x).abs() <= 1.0);
+        let v: serde_json::Value = serde_json::from_str(&pr.to_json()).unwrap();
+        assert_eq!(v["n_e"], 4);
+        assert_eq!(v["n_a"], 4);
+        assert!(v["homography"][2][2].as_f64().is_some());
+        assert!(v.get("rectified").is_none());
+    }
+}
+
+
+#[cfg(test)]
+mod debug_tmp {
+    use super::testutil::*;
+    use super::*;
+    #[test]
+    #[ignore]
+    fn dbg() {
+        let img = render_rotated(&satin5(), 20.0, 256, 256, -1.5);
+        let pr = prepare(&img, &PrepOptions::default()).unwrap();
+        println!("angle {} pitch {} {} n {} {} w {} h {} H {:?}", pr.angle_deg, pr.pitch_x, pr.pitch_y, pr.n_e, pr.n_a, pr.width, pr.height, pr.homography);
+    }
+}

@@ -1,0 +1,493 @@
+//! Rectification (paper §4.1): make the yarns run along the image axes.
+//!
+//! 1. **Rotation.** The grey image is Laplacian-filtered (Laplacian of Gaussian), so that yarn
+//!    *edges* and the dark gaps between yarns dominate instead of broad highlights (as the paper
+//!    prescribes). The plain 3×3 Laplacian weights the spectrum by |f|², which lets the corners of
+//!    the cell lattice (peaks of the Radon curve at lattice directions such as atan(1/3)) compete
+//!    with the yarn axes; so the Laplacian is taken at Gaussian scales σ ∈ {2, 4, 8} px (scales
+//!    above 1/24 of the image side are skipped; σ = 1 was tried and is dominated by pixel-level
+//!    edge detail that biases the peak on small images) and the Radon curves, each divided by its mean,
+//!    are summed: only the yarn axes peak at every scale. A Radon transform of the Laplacian image is evaluated inside a centred disc (so
+//!    the support of every projection is the same whatever the angle): pixels are projected onto the
+//!    normal of the candidate yarn direction and binned (linear interpolation, 1 px bins). When the
+//!    candidate direction matches the yarns, edges pile up in the same bins, so the *energy*
+//!    (sum of squared bin totals) of the projection peaks. Weft and warp are perpendicular, so the
+//!    score of angle θ ∈ [−45°, 45°) is `E(θ) + E(θ + 90°)`. Search: 0.5° steps on a disc of radius
+//!    ≤ 128 px (wide peak, robust), then ±1° in 0.05° steps on the largest centred disc with a
+//!    parabolic fit of the peak. The image is then rotated (bilinear) by −θ and cropped to the
+//!    largest centred rectangle of the input's aspect ratio that holds only valid pixels.
+//! 2. **Perspective** (after Chaudhury, DiVerdi & Ioffe 2014, "Auto-rectification of user
+//!    photos", the paper's [CDI14]). On the rotated image, the local direction of each yarn family is
+//!    measured with the same Radon energy on 5×5 overlapping discs (±8° around 0° and 90°). Each
+//!    measurement is a line through the disc centre. For each family a vanishing point is fitted with
+//!    RANSAC (exhaustive pairs of lines as hypotheses, inlier = angular residual < 0.6°), refined by
+//!    least squares (smallest eigenvector of Σ l lᵀ over the inliers). The homography sends the
+//!    vanishing line `v_weft × v_warp` to infinity (projective part) and then maps the two
+//!    (now affine) yarn directions onto the x and y axes (affine part). The output is cropped to the
+//!    largest axis-aligned rectangle inside the warped image. When too few tiles agree, or the
+//!    implied tilt is implausible (> ~30°), no perspective correction is applied.
+//!
+//! All transforms are composed into one homography mapping output pixels to input pixels, and
+//! the input is resampled once.
+
+use std::f64::consts::PI;
+
+use image::Rgb32FImage;
+use rayon::prelude::*;
+
+use super::image_ops::{blur_gray, parabola_offset, warp_gray, warp_rgb, Gray};
+use super::linalg::{apply, cross3, mat3_inv, mat3_mul, sym_eigen, translation, Homography};
+
+/// Result of [`rectify`].
+#[derive(Clone, Debug)]
+pub struct Rectified {
+    /// The rectified (rotated, perspective-corrected, cropped) image.
+    pub image: Rgb32FImage,
+    /// Dominant weft direction in the input, degrees in [−45, 45): the weft runs along
+    /// `(cos a, sin a)` in image coordinates (x right, y down).
+    pub angle_deg: f32,
+    /// Maps output pixel `(u, v, 1)` to input pixel coordinates.
+    pub homography: Homography,
+    /// Whether a perspective correction was applied.
+    pub perspective_applied: bool,
+}
+
+/// Isotropic 3×3 Laplacian (weights 1,4,1 / 4,−20,4 / 1,4,1, divided by 6); zero on the border.
+pub fn laplacian(g: &Gray) -> Gray {
+    let (w, h) = (g.w, g.h);
+    let mut out = Gray::new(w, h);
+    if w < 3 || h < 3 {
+        return out;
+    }
+    out.data
+        .par_chunks_mut(w)
+        .enumerate()
+        .skip(1)
+        .take(h - 2)
+        .for_each(|(y, row)| {
+            let up = &g.data[(y - 1) * w..y * w];
+            let mid = &g.data[y * w..(y + 1) * w];
+            let dn = &g.data[(y + 1) * w..(y + 2) * w];
+            for x in 1..w - 1 {
+                let s = up[x - 1]
+                    + up[x + 1]
+                    + dn[x - 1]
+                    + dn[x + 1]
+                    + 4.0 * (up[x] + dn[x] + mid[x - 1] + mid[x + 1])
+                    - 20.0 * mid[x];
+                row[x] = s / 6.0;
+            }
+        });
+    out
+}
+
+/// Laplacian samples inside a disc, stored relative to the disc centre.
+struct Disc {
+    pts: Vec<[f32; 3]>,
+    radius: f32,
+}
+
+fn disc(lap: &Gray, cx: f64, cy: f64, radius: f64, max_pts: usize) -> Disc {
+    let area = PI * radius * radius;
+    let stride = ((area / max_pts as f64).sqrt().ceil() as usize).max(1);
+    let mut pts = Vec::new();
+    let y0 = (cy - radius).ceil().max(0.0) as usize;
+    let y1 = ((cy + radius).floor() as usize).min(lap.h.saturating_sub(1));
+    let x0 = (cx - radius).ceil().max(0.0) as usize;
+    let x1 = ((cx + radius).floor() as usize).min(lap.w.saturating_sub(1));
+    let r2 = radius * radius;
+    for y in (y0..=y1).step_by(stride) {
+        for x in (x0..=x1).step_by(stride) {
+            let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+            if dx * dx + dy * dy <= r2 {
+                pts.push([dx as f32, dy as f32, lap.at(x, y)]);
+            }
+        }
+    }
+    Disc {
+        pts,
+        radius: radius as f32,
+    }
+}
+
+/// Radon projection energy for lines running along direction `angle` (radians).
+fn projection_energy(d: &Disc, angle: f64, bins: &mut Vec<f32>) -> f64 {
+    let (sn, cs) = angle.sin_cos();
+    let (sn, cs) = (sn as f32, cs as f32);
+    let off = d.radius.ceil() + 1.0;
+    let nb = 2 * off as usize + 3;
+    bins.clear();
+    bins.resize(nb, 0.0);
+    for p in &d.pts {
+        let t = -p[0] * sn + p[1] * cs + off;
+        let i = t as usize;
+        let f = t - i as f32;
+        bins[i] += p[2] * (1.0 - f);
+        bins[i + 1] += p[2] * f;
+    }
+    bins.iter().map(|&b| (b as f64) * (b as f64)).sum()
+}
+
+/// Scores `f(angle_deg)` over `angles`, in parallel.
+fn scores(d: &Disc, angles: &[f64], both: bool) -> Vec<f64> {
+    angles
+        .par_iter()
+        .map_init(Vec::new, |bins, &a| {
+            let r = a.to_radians();
+            let mut e = projection_energy(d, r, bins);
+            if both {
+                e += projection_energy(d, r + PI / 2.0, bins);
+            }
+            e
+        })
+        .collect()
+}
+
+/// Searches `center ± half` (degrees) with `step`, returns the refined peak angle and the peak
+/// contrast (peak / mean score over the range).
+fn search(d: &Disc, center: f64, half: f64, step: f64, both: bool) -> (f64, f64, usize, usize) {
+    let n = (2.0 * half / step).round() as usize + 1;
+    let angles: Vec<f64> = (0..n).map(|i| center - half + i as f64 * step).collect();
+    let s = scores(d, &angles, both);
+    let (k, &best) = s
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .expect("non-empty");
+    let mean = s.iter().sum::<f64>() / n as f64;
+    let off = if k > 0 && k + 1 < n {
+        parabola_offset(s[k - 1], s[k], s[k + 1])
+    } else {
+        0.0
+    };
+    let contrast = if mean > 0.0 { best / mean } else { 0.0 };
+    (angles[k] + off * step, contrast, k, n)
+}
+
+/// Dominant yarn angle in degrees, in [−45, 45), and the Laplacian-of-Gaussian scale with the
+/// most distinct peak (see module docs). `g` is the grey input.
+pub fn dominant_angle(g: &Gray) -> (f64, f32) {
+    let (cx, cy) = ((g.w as f64 - 1.0) / 2.0, (g.h as f64 - 1.0) / 2.0);
+    let r0 = (g.w.min(g.h) as f64 / 2.0 - 1.5).max(2.0);
+    let sigmas: Vec<f32> = [2.0f32, 4.0, 8.0]
+        .into_iter()
+        .filter(|&s| s == 2.0 || s <= g.w.min(g.h) as f32 / 24.0)
+        .collect();
+    let laps: Vec<Gray> = sigmas
+        .iter()
+        .map(|&s| laplacian(&blur_gray(g, s)))
+        .collect();
+    // Coarse: sum over scales of the Radon curves, each normalised by its mean.
+    let coarse: Vec<Disc> = laps
+        .iter()
+        .map(|l| disc(l, cx, cy, r0.min(128.0), 60_000))
+        .collect();
+    let angles: Vec<f64> = (0..180).map(|i| -45.0 + 0.5 * i as f64).collect();
+    let mut total = vec![0.0f64; angles.len()];
+    let mut best_sigma = (0.0f64, sigmas[0]);
+    for (d, &sigma) in coarse.iter().zip(&sigmas) {
+        let s = scores(d, &angles, true);
+        let mean = s.iter().sum::<f64>() / s.len() as f64;
+        if mean <= 0.0 {
+            continue;
+        }
+        let peak = s.iter().cloned().fold(0.0, f64::max) / mean;
+        if peak > best_sigma.0 {
+            best_sigma = (peak, sigma);
+        }
+        total.iter_mut().zip(&s).for_each(|(t, v)| *t += v / mean);
+    }
+    let k = (0..total.len())
+        .max_by(|&a, &b| total[a].total_cmp(&total[b]))
+        .unwrap_or(0);
+    let a0 = angles[k];
+    // Fine: ±1° in 0.05° steps on the largest disc, same normalised sum, parabolic peak.
+    let fine_angles: Vec<f64> = (0..=40).map(|i| a0 - 1.0 + 0.05 * i as f64).collect();
+    let mut fine_total = vec![0.0f64; fine_angles.len()];
+    for l in &laps {
+        let d = if r0 > 128.0 {
+            disc(l, cx, cy, r0, 200_000)
+        } else {
+            disc(l, cx, cy, r0, 60_000)
+        };
+        let s = scores(&d, &fine_angles, true);
+        let m = s.iter().sum::<f64>() / s.len() as f64;
+        if m > 0.0 {
+            fine_total.iter_mut().zip(&s).for_each(|(t, v)| *t += v / m);
+        }
+    }
+    let k = (0..fine_total.len())
+        .max_by(|&a, &b| fine_total[a].total_cmp(&fine_total[b]))
+        .unwrap_or(0);
+    let off = if k > 0 && k + 1 < fine_total.len() {
+        parabola_offset(fine_total[k - 1], fine_total[k], fine_total[k + 1])
+    } else {
+        0.0
+    };
+    (wrap45(fine_angles[k] + 0.05 * off), best_sigma.1)
+}
+
+fn wrap45(a: f64) -> f64 {
+    let mut a = (a + 45.0).rem_euclid(90.0) - 45.0;
+    if a >= 45.0 {
+        a -= 90.0;
+    }
+    a
+}
+
+/// Homography (output px → input px) and output size for rotating a `w × h` image so that
+/// direction `angle_deg` becomes the x axis, cropped to the largest centred rectangle with the
+/// input's aspect ratio holding only valid pixels.
+pub fn rotation_homography(angle_deg: f64, w: usize, h: usize) -> (Homography, usize, usize) {
+    let t = angle_deg.to_radians();
+    let (c, s) = (t.cos().abs(), t.sin().abs());
+    let (wf, hf) = (w as f64 - 1.0, h as f64 - 1.0);
+    let k = (wf / (wf * c + hf * s))
+        .min(hf / (wf * s + hf * c))
+        .min(1.0);
+    let (ow, oh) = if angle_deg.abs() < 1e-9 {
+        (w, h)
+    } else {
+        (
+            ((k * wf).floor() as usize).max(1),
+            ((k * hf).floor() as usize).max(1),
+        )
+    };
+    let rot = [
+        [t.cos(), -t.sin(), 0.0],
+        [t.sin(), t.cos(), 0.0],
+        [0.0, 0.0, 1.0],
+    ];
+    let hm = mat3_mul(
+        &mat3_mul(&translation(wf / 2.0, hf / 2.0), &rot),
+        &translation(-(ow as f64 - 1.0) / 2.0, -(oh as f64 - 1.0) / 2.0),
+    );
+    (hm, ow, oh)
+}
+
+/// A local line observation: centre and unit direction (normalised image coordinates).
+#[derive(Clone, Copy, Debug)]
+struct LineObs {
+    c: [f64; 2],
+    d: [f64; 2],
+}
+
+impl LineObs {
+    fn line(&self) -> [f64; 3] {
+        [
+            -self.d[1],
+            self.d[0],
+            self.d[1] * self.c[0] - self.d[0] * self.c[1],
+        ]
+    }
+    /// Sine of the angle between the observed direction and the direction towards `v`.
+    fn residual(&self, v: &[f64; 3]) -> f64 {
+        let dir = [v[0] - v[2] * self.c[0], v[1] - v[2] * self.c[1]];
+        let n = (dir[0] * dir[0] + dir[1] * dir[1]).sqrt();
+        if n < 1e-12 {
+            return 1.0;
+        }
+        (self.d[0] * dir[1] - self.d[1] * dir[0]).abs() / n
+    }
+}
+
+/// RANSAC vanishing point of a family of line observations (exhaustive pair hypotheses),
+/// refined by least squares on the inliers. Returns a unit homogeneous point.
+fn ransac_vp(obs: &[LineObs], thr: f64) -> Option<[f64; 3]> {
+    let n = obs.len();
+    if n < 4 {
+        return None;
+    }
+    let lines: Vec<[f64; 3]> = obs.iter().map(|o| o.line()).collect();
+    let mut best: Option<(usize, f64, Vec<usize>)> = None;
+    for i in 0..n {
+        for j in i + 1..n {
+            let v = cross3(lines[i], lines[j]);
+            let nv = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            if nv < 1e-12 {
+                continue;
+            }
+            let v = [v[0] / nv, v[1] / nv, v[2] / nv];
+            let mut inl = Vec::new();
+            let mut cost = 0.0;
+            for (k, o) in obs.iter().enumerate() {
+                let r = o.residual(&v);
+                if r < thr {
+                    inl.push(k);
+                    cost += r * r;
+                }
+            }
+            let better = match &best {
+                None => true,
+                Some((cnt, c, _)) => inl.len() > *cnt || (inl.len() == *cnt && cost < *c),
+            };
+            if better {
+                best = Some((inl.len(), cost, inl));
+            }
+        }
+    }
+    let (cnt, _, inl) = best?;
+    if cnt < 4 || cnt * 2 < n {
+        return None;
+    }
+    let mut s = [0.0f64; 9];
+    for &k in &inl {
+        let l = lines[k];
+        for a in 0..3 {
+            for b in 0..3 {
+                s[a * 3 + b] += l[a] * l[b];
+            }
+        }
+    }
+    let (_, vecs) = sym_eigen(&s, 3);
+    let v = &vecs[2];
+    Some([v[0], v[1], v[2]])
+}
+
+/// Estimates the perspective correction of an (already rotated) image from its Laplacian.
+/// Returns the homography mapping output pixels to pixels of `lap`, and the output size.
+pub fn estimate_perspective(lap: &Gray) -> Option<(Homography, usize, usize)> {
+    let (w, h) = (lap.w as f64, lap.h as f64);
+    let m = w.min(h);
+    let rt = m / 5.0;
+    let grid = 5usize;
+    let centres: Vec<(f64, f64)> = (0..grid * grid)
+        .map(|k| {
+            let (i, j) = (k % grid, k / grid);
+            let fx = i as f64 / (grid - 1) as f64;
+            let fy = j as f64 / (grid - 1) as f64;
+            (
+                rt + fx * (w - 1.0 - 2.0 * rt),
+                rt + fy * (h - 1.0 - 2.0 * rt),
+            )
+        })
+        .collect();
+    let (cx, cy, sc) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0, m / 2.0);
+    // Local directions of both families in each disc.
+    let obs: Vec<(Option<LineObs>, Option<LineObs>)> = centres
+        .par_iter()
+        .map(|&(x, y)| {
+            let d = disc(lap, x, y, rt, 30_000);
+            let c = [(x - cx) / sc, (y - cy) / sc];
+            let mk = |center: f64| {
+                let (a, contrast, k, n) = search(&d, center, 8.0, 0.5, false);
+                if k == 0 || k + 1 == n || contrast < 1.2 {
+                    return None;
+                }
+                let (a, _, _, _) = search(&d, a, 0.6, 0.05, false);
+                let r = a.to_radians();
+                Some(LineObs {
+                    c,
+                    d: [r.cos(), r.sin()],
+                })
+            };
+            (mk(0.0), mk(90.0))
+        })
+        .collect();
+    #[cfg(test)]
+    if std::env::var("PREP_DEBUG").is_ok() {
+        for o in &obs {
+            eprintln!(
+                "c {:?} weft {:?} warp {:?}",
+                o.0.map(|l| l.c),
+                o.0.map(|l| l.d[1].atan2(l.d[0]).to_degrees()),
+                o.1.map(|l| l.d[1].atan2(l.d[0]).to_degrees())
+            );
+        }
+    }
+    let weft: Vec<LineObs> = obs.iter().filter_map(|o| o.0).collect();
+    let warp: Vec<LineObs> = obs.iter().filter_map(|o| o.1).collect();
+    let thr = 0.6f64.to_radians().sin();
+    let vh = ransac_vp(&weft, thr)?;
+    let vv = ransac_vp(&warp, thr)?;
+    // Projective part: send the vanishing line to infinity.
+    let l = cross3(vh, vv);
+    if l[2].abs() < 1e-12 {
+        return None;
+    }
+    let l = [l[0] / l[2], l[1] / l[2], 1.0];
+    if l[0].abs() > 0.6 || l[1].abs() > 0.6 {
+        return None; // implausible tilt for a close-up photo
+    }
+    let hp = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [l[0], l[1], 1.0]];
+    let dir = |v: [f64; 3], axis: usize| -> Option<[f64; 2]> {
+        let p = [
+            hp[0][0] * v[0] + hp[0][1] * v[1] + hp[0][2] * v[2],
+            hp[1][0] * v[0] + hp[1][1] * v[1] + hp[1][2] * v[2],
+        ];
+        let n = (p[0] * p[0] + p[1] * p[1]).sqrt();
+        if n < 1e-12 {
+            return None;
+        }
+        let s = if p[axis] < 0.0 { -1.0 } else { 1.0 };
+        Some([s * p[0] / n, s * p[1] / n])
+    };
+    let dh = dir(vh, 0)?;
+    let dv = dir(vv, 1)?;
+    // Affine part: map dh → x axis, dv → y axis (inverse of the matrix with columns dh, dv).
+    let det = dh[0] * dv[1] - dv[0] * dh[1];
+    if det.abs() < 0.5 {
+        return None;
+    }
+    let a = [
+        [dv[1] / det, -dv[0] / det, 0.0],
+        [-dh[1] / det, dh[0] / det, 0.0],
+        [0.0, 0.0, 1.0],
+    ];
+    let nrm = [
+        [1.0 / sc, 0.0, -cx / sc],
+        [0.0, 1.0 / sc, -cy / sc],
+        [0.0, 0.0, 1.0],
+    ];
+    let nrm_inv = mat3_inv(&nrm)?;
+    let f = mat3_mul(&nrm_inv, &mat3_mul(&mat3_mul(&a, &hp), &nrm));
+    let corners = [
+        (0.0, 0.0),
+        (w - 1.0, 0.0),
+        (0.0, h - 1.0),
+        (w - 1.0, h - 1.0),
+    ];
+    let pc: Vec<(f64, f64)> = corners.iter().map(|&(x, y)| apply(&f, x, y)).collect();
+    let x0 = pc[0].0.max(pc[2].0);
+    let x1 = pc[1].0.min(pc[3].0);
+    let y0 = pc[0].1.max(pc[1].1);
+    let y1 = pc[2].1.min(pc[3].1);
+    if !(x1 - x0 > 0.6 * w && y1 - y0 > 0.6 * h) {
+        return None;
+    }
+    let (ow, oh) = (
+        (x1 - x0.ceil()).floor() as usize,
+        (y1 - y0.ceil()).floor() as usize,
+    );
+    let g = mat3_mul(&mat3_inv(&f)?, &translation(x0.ceil(), y0.ceil()));
+    Some((g, ow, oh))
+}
+
+/// Full rectification of `img` (rotation, then optional perspective removal); see module docs.
+pub fn rectify(img: &Rgb32FImage, perspective: bool) -> Rectified {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let g = Gray::from_rgb(img);
+    let (angle, sigma) = dominant_angle(&g);
+    let (hr, mut ow, mut oh) = rotation_homography(angle, w, h);
+    let mut hm = hr;
+    let mut applied = false;
+    if perspective {
+        let rot = warp_gray(&g, &hr, ow, oh);
+        let rlap = laplacian(&blur_gray(&rot, sigma));
+        if let Some((hp, pw, ph)) = estimate_perspective(&rlap) {
+            if pw >= 32 && ph >= 32 {
+                hm = mat3_mul(&hr, &hp);
+                ow = pw;
+                oh = ph;
+                applied = true;
+            }
+        }
+    }
+    let image = warp_rgb(img, &hm, ow, oh);
+    Rectified {
+        image,
+        angle_deg: angle as f32,
+        homography: hm,
+        perspective_applied: applied,
+    }
+}

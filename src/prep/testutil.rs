@@ -1,0 +1,120 @@
+//! Test-only synthetic woven images: a procedural top-down weave.
+//!
+//! For pattern `P` (`n_e × n_a`), texture coordinates `(tx, ty)` are in yarn pitches; cell
+//! `(i, j) = (⌊ty⌋ mod n_e, ⌊tx⌋ mod n_a)`. Where `P[i][j] = 1` the weft is on top and the cell is
+//! shaded as a horizontal yarn (brightness `cos` profile across the yarn, dark gap between
+//! neighbouring wefts); otherwise as a vertical (warp) yarn. Yarn boundaries lie at integer
+//! texture coordinates. Pixels are 3×3 super-sampled.
+
+use image::Rgb32FImage;
+use rand::prelude::*;
+use rand_distr::{Distribution, Normal};
+
+pub fn plain() -> Vec<Vec<u8>> {
+    vec![vec![1, 0], vec![0, 1]]
+}
+pub fn basket2() -> Vec<Vec<u8>> {
+    vec![
+        vec![1, 1, 0, 0],
+        vec![1, 1, 0, 0],
+        vec![0, 0, 1, 1],
+        vec![0, 0, 1, 1],
+    ]
+}
+pub fn twill22() -> Vec<Vec<u8>> {
+    vec![
+        vec![1, 1, 0, 0],
+        vec![0, 1, 1, 0],
+        vec![0, 0, 1, 1],
+        vec![1, 0, 0, 1],
+    ]
+}
+pub fn satin5() -> Vec<Vec<u8>> {
+    (0..5)
+        .map(|i| (0..5).map(|j| u8::from(j != (2 * i) % 5)).collect())
+        .collect()
+}
+
+/// Linear RGB of the weave at texture coordinates (in pitches).
+pub fn texture(p: &[Vec<u8>], tx: f64, ty: f64) -> [f32; 3] {
+    let (ne, na) = (p.len() as i64, p[0].len() as i64);
+    let (ci, cj) = (ty.floor() as i64, tx.floor() as i64);
+    let (fx, fy) = (tx - tx.floor(), ty - ty.floor());
+    let weft_over = p[ci.rem_euclid(ne) as usize][cj.rem_euclid(na) as usize] == 1;
+    let (across, colour) = if weft_over {
+        (fy - 0.5, [0.85f32, 0.6, 0.35])
+    } else {
+        (fx - 0.5, [0.35f32, 0.55, 0.85])
+    };
+    let half = 0.44;
+    if across.abs() > half {
+        return [0.03, 0.03, 0.03];
+    }
+    let b = (0.15 + 0.85 * (std::f64::consts::FRAC_PI_2 * across / half).cos()) as f32;
+    [colour[0] * b, colour[1] * b, colour[2] * b]
+}
+
+/// Renders a `w × h` image; `map(x, y)` gives the texture coordinates (in pixels of the flat
+/// cloth) of image point `(x, y)`; the pitch converts them to yarn units.
+pub fn render(
+    p: &[Vec<u8>],
+    pitch: f64,
+    w: u32,
+    h: u32,
+    map: impl Fn(f64, f64) -> (f64, f64),
+) -> Rgb32FImage {
+    let mut img = Rgb32FImage::new(w, h);
+    let offs = [-1.0 / 3.0, 0.0, 1.0 / 3.0];
+    for (x, y, px) in img.enumerate_pixels_mut() {
+        let mut acc = [0.0f32; 3];
+        for oy in offs {
+            for ox in offs {
+                let (tx, ty) = map(x as f64 + ox, y as f64 + oy);
+                let c = texture(p, tx / pitch, ty / pitch);
+                for k in 0..3 {
+                    acc[k] += c[k] / 9.0;
+                }
+            }
+        }
+        px.0 = acc;
+    }
+    img
+}
+
+/// Axis-aligned render.
+pub fn render_flat(p: &[Vec<u8>], pitch: f64, w: u32, h: u32) -> Rgb32FImage {
+    render(p, pitch, w, h, |x, y| (x, y))
+}
+
+/// Render rotated so that the weft runs along `(cos a, sin a)` in the image (a in degrees).
+pub fn render_rotated(p: &[Vec<u8>], pitch: f64, w: u32, h: u32, a_deg: f64) -> Rgb32FImage {
+    let (s, c) = a_deg.to_radians().sin_cos();
+    let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
+    render(p, pitch, w, h, move |x, y| {
+        let (dx, dy) = (x - cx, y - cy);
+        // Inverse rotation: texture = R(-a) (q - c).
+        (
+            c * dx + s * dy + 1000.0 * pitch,
+            -s * dx + c * dy + 1000.0 * pitch,
+        )
+    })
+}
+
+pub fn add_noise(img: &Rgb32FImage, sigma: f32, seed: u64) -> Rgb32FImage {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let n = Normal::new(0.0f32, sigma).unwrap();
+    let mut out = img.clone();
+    out.iter_mut().for_each(|v| *v += n.sample(&mut rng));
+    out
+}
+
+pub fn psnr(a: &Rgb32FImage, b: &Rgb32FImage) -> f64 {
+    let mse = a
+        .as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(x, y)| ((x - y) as f64).powi(2))
+        .sum::<f64>()
+        / a.as_raw().len() as f64;
+    10.0 * (1.0 / mse).log10()
+}

@@ -1,0 +1,300 @@
+//! Path construction (forward-model decision 5, Appendix A): camera ray → x0 → y0 → x1 → y1 with
+//! next-event estimation at every vertex, refraction always followed, implicit plies tested at
+//! every tube crossing. Paths are recorded as [`PathVertex`]es whose weights are functions of the
+//! appearance parameters only, so a recorded path can be re-shaded (and differentiated) without
+//! re-tracing (decision 6: sampling detached, weight `f(θ)/p(θ₀)`).
+
+use super::camera::Camera;
+use super::lights::Light;
+use crate::geometry::ply::PlyModel;
+use crate::geometry::tile::TileGeometry;
+use crate::geometry::yarn::Family;
+use crate::params::Appearance;
+use crate::shading::bysdf::VertexKind;
+use crate::shading::ggx::sample_transmission;
+use glam::Vec3;
+use rand::rngs::SmallRng;
+use rand::{RngExt, SeedableRng};
+
+/// Maximum shading vertices per path (x0, y0, x1, y1).
+pub const MAX_VERTICES: usize = 4;
+/// Offset used to leave a surface.
+const EPS: f32 = 1e-3;
+
+/// A light sample that reached a vertex (direction in the vertex's local frame, `Le/pdf`).
+#[derive(Clone, Copy, Debug)]
+pub struct LightHit {
+    /// Direction towards the light in the fiber frame (z = fiber normal).
+    pub l: Vec3,
+    /// `Le/pdf` with visibility applied.
+    pub w: [f32; 3],
+}
+
+/// One recorded shading vertex.
+#[derive(Clone, Copy, Debug)]
+pub struct PathVertex {
+    /// x (entry) or y (exit).
+    pub kind: VertexKind,
+    /// Yarn family (picks R^B / S^B).
+    pub family: Family,
+    /// Direction towards the previous vertex/camera in the fiber frame.
+    pub v: Vec3,
+    /// Ply-level AO.
+    pub ao_p: f32,
+    /// Fiber-level AO.
+    pub ao_f: f32,
+    /// Chord ‖y − x‖ (y vertices).
+    pub chord: f32,
+    /// Plies crossed `N_i` (y vertices).
+    pub n_i: u32,
+    /// Index of the first [`LightHit`] of this vertex and their count.
+    pub lights: (u32, u32),
+    /// Sampled refraction leaving this vertex: local direction and its pdf under θ₀.
+    pub refr: Option<(Vec3, f32)>,
+}
+
+/// A recorded path sample: escaped radiance plus vertices.
+#[derive(Clone, Debug, Default)]
+pub struct PathBuf {
+    /// Radiance of a camera ray that escapes through a gap (independent of appearance).
+    pub background: [f32; 3],
+    /// Vertices.
+    pub verts: Vec<PathVertex>,
+    /// Light samples of all vertices.
+    pub lights: Vec<LightHit>,
+}
+
+impl PathBuf {
+    fn clear(&mut self) {
+        self.background = [0.0; 3];
+        self.verts.clear();
+        self.lights.clear();
+    }
+}
+
+/// Everything needed to trace paths for one cloth geometry.
+pub struct Tracer<'a> {
+    /// Tile geometry with BVH.
+    pub geom: &'a TileGeometry,
+    /// Ply/fiber model.
+    pub plies: PlyModel,
+    /// Lights.
+    pub lights: &'a [Light],
+    /// Camera.
+    pub camera: &'a Camera,
+    /// Appearance θ₀ used to sample refractions.
+    pub sampling: &'a Appearance,
+    /// Trace x→y transmission paths (false: skipped because nothing lights the back).
+    pub transmission: bool,
+}
+
+/// Shading frame at a vertex.
+struct Frame {
+    s: Vec3,
+    t: Vec3,
+    n: Vec3,
+}
+
+impl Frame {
+    fn new(n: Vec3, t: Vec3) -> Self {
+        let t = (t - n * n.dot(t)).normalize_or(super::lights::basis(n).0);
+        Frame { s: t.cross(n), t, n }
+    }
+    fn to_local(&self, d: Vec3) -> Vec3 {
+        Vec3::new(d.dot(self.s), d.dot(self.t), d.dot(self.n))
+    }
+    fn to_world(&self, d: Vec3) -> Vec3 {
+        self.s * d.x + self.t * d.y + self.n * d.z
+    }
+}
+
+/// Deterministic per-sample random numbers.
+pub fn sample_rng(seed: u64, pixel: u64, sample: u64) -> SmallRng {
+    let mut h = seed ^ 0x9E37_79B9_7F4A_7C15;
+    for x in [pixel, sample] {
+        h = (h ^ x).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        h ^= h >> 31;
+    }
+    SmallRng::seed_from_u64(h)
+}
+
+impl Tracer<'_> {
+    fn tube_normal(&self, yarn: usize, p: Vec3) -> Vec3 {
+        let y = &self.geom.set.yarns[yarn];
+        let s = y.closest_s(p);
+        (p - y.point(s)).normalize_or(Vec3::Z)
+    }
+
+    /// Visibility along `dir` from world point `pw` (tile point `pt`) on yarn `yarn`, testing the
+    /// implicit plies at every tube crossing (ply visibility `V_p`, §3.1, ambiguity 17).
+    fn visible(&self, yarn: usize, pw: Vec3, pt: Vec3, dir: Vec3, max_dist: f32) -> bool {
+        let own = &self.geom.set.yarns[yarn];
+        let nt = self.tube_normal(yarn, pt);
+        let mut start = pw;
+        let mut skip = Some((yarn, 1e-2));
+        let mut travelled = 0.0;
+        if dir.dot(nt) < 0.0 {
+            // Towards the inside of its own yarn: blocked where the line meets a ply.
+            if self.plies.blocks(own, pt, dir) {
+                return false;
+            }
+            let te = self.geom.exit_tube(yarn, pt, dir);
+            start = pw + dir * (te + EPS);
+            travelled = te + EPS;
+        } else {
+            start += nt * EPS;
+        }
+        for _ in 0..32 {
+            let Some(hit) = self.geom.closest(start, dir, skip) else { return true };
+            if travelled + hit.t >= max_dist {
+                return true;
+            }
+            let y = &self.geom.set.yarns[hit.yarn];
+            if self.plies.blocks(y, hit.p, dir) {
+                return false;
+            }
+            let te = self.geom.exit_tube(hit.yarn, hit.p, dir);
+            let step = hit.t + te + EPS;
+            start += dir * step;
+            travelled += step;
+            skip = Some((hit.yarn, 1e-2));
+        }
+        true
+    }
+
+    /// Next-event estimation at a vertex: one sample per light, visibility applied.
+    fn sample_lights(
+        &self,
+        rng: &mut SmallRng,
+        yarn: usize,
+        pw: Vec3,
+        pt: Vec3,
+        frame: &Frame,
+        out: &mut Vec<LightHit>,
+    ) -> (u32, u32) {
+        let start = out.len() as u32;
+        for light in self.lights {
+            let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
+            let ls = light.sample(pw, u1, u2);
+            if ls.weight.iter().all(|&w| w <= 0.0) {
+                continue;
+            }
+            let l = frame.to_local(ls.dir);
+            if l.z == 0.0 || !self.visible(yarn, pw, pt, ls.dir, ls.dist) {
+                continue;
+            }
+            out.push(LightHit { l, w: ls.weight });
+        }
+        (start, out.len() as u32 - start)
+    }
+
+    /// Trace one camera sample through pixel position `(px, py)` into `buf`.
+    pub fn trace(&self, px: f32, py: f32, rng: &mut SmallRng, buf: &mut PathBuf) {
+        buf.clear();
+        let (o, d) = self.camera.ray(px, py);
+        let mut ray_o = o;
+        let mut ray_d = d;
+        let mut skip: Option<(usize, f32)> = None;
+        let mut depth = 0;
+        let mut gaps = 0;
+        while buf.verts.len() < MAX_VERTICES && gaps < 16 {
+            let Some(hit) = self.geom.closest(ray_o, ray_d, skip) else {
+                if depth == 0 {
+                    for l in self.lights {
+                        let r = l.radiance(ray_d);
+                        (0..3).for_each(|k| buf.background[k] += r[k]);
+                    }
+                }
+                return;
+            };
+            let yarn = &self.geom.set.yarns[hit.yarn];
+            let xw = ray_o + ray_d * hit.t;
+            let Some(ph) = self.plies.map(yarn, hit.p, ray_d, true) else {
+                // Between plies: march on through this tube without shading (ambiguity 6).
+                let te = self.geom.exit_tube(hit.yarn, hit.p, ray_d);
+                ray_o = xw + ray_d * (te + EPS);
+                skip = Some((hit.yarn, 1e-2));
+                gaps += 1;
+                continue;
+            };
+            depth += 1;
+            let frame = Frame::new(ph.normal, ph.tangent);
+            let v = frame.to_local(-ray_d);
+            let lights = self.sample_lights(rng, hit.yarn, xw, hit.p, &frame, &mut buf.lights);
+            let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
+            let mut vx = PathVertex {
+                kind: VertexKind::X,
+                family: yarn.family,
+                v,
+                ao_p: ph.ao_p,
+                ao_f: ph.ao_f,
+                chord: 0.0,
+                n_i: 0,
+                lights,
+                refr: None,
+            };
+            if !self.transmission || buf.verts.len() + 1 >= MAX_VERTICES {
+                buf.verts.push(vx);
+                return;
+            }
+            // Refract into the yarn (always transmit), sampled with θ₀.
+            let Some((tl, pdf)) = sample_transmission(v, self.sampling.alpha_s, self.sampling.eta_s, u1, u2) else {
+                buf.verts.push(vx);
+                return;
+            };
+            let tw = frame.to_world(tl);
+            let nt = self.tube_normal(hit.yarn, hit.p);
+            if tw.dot(nt) >= 0.0 {
+                buf.verts.push(vx);
+                return;
+            }
+            vx.refr = Some((tl, pdf));
+            buf.verts.push(vx);
+            // Exit point y: the far wall of the same tube along the refracted direction.
+            let chord = self.geom.exit_tube(hit.yarn, hit.p, tw);
+            let yt = hit.p + tw * chord;
+            let yw = xw + tw * chord;
+            let ny = self.tube_normal(hit.yarn, yt);
+            let Some(py) = self.plies.map(yarn, yt, tw, false) else {
+                ray_o = yw + ny * EPS;
+                ray_d = tw;
+                skip = Some((hit.yarn, 1e-2));
+                continue;
+            };
+            let fy = Frame::new(py.normal, py.tangent);
+            let vy = fy.to_local(-tw);
+            let lights = self.sample_lights(rng, hit.yarn, yw, yt, &fy, &mut buf.lights);
+            let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
+            let mut vyx = PathVertex {
+                kind: VertexKind::Y,
+                family: yarn.family,
+                v: vy,
+                ao_p: py.ao_p,
+                ao_f: py.ao_f,
+                chord,
+                n_i: py.crossed.max(1),
+                lights,
+                refr: None,
+            };
+            if buf.verts.len() + 1 >= MAX_VERTICES {
+                buf.verts.push(vyx);
+                return;
+            }
+            let Some((ol, pdf)) = sample_transmission(vy, self.sampling.alpha_s_y, self.sampling.eta_s_y, u1, u2)
+            else {
+                buf.verts.push(vyx);
+                return;
+            };
+            let ow = fy.to_world(ol);
+            if ow.dot(ny) <= 0.0 {
+                buf.verts.push(vyx);
+                return;
+            }
+            vyx.refr = Some((ol, pdf));
+            buf.verts.push(vyx);
+            ray_o = yw + ny * EPS;
+            ray_d = ow;
+            skip = Some((hit.yarn, 1e-2));
+        }
+    }
+}

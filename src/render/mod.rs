@@ -1,0 +1,283 @@
+//! The renderer: trace paths through one periodic tile of yarns, shade them with the BYSDF.
+//!
+//! Two entry points: [`render`] traces and shades each sample at once (plain images); [`PathCache`]
+//! records the paths of a render so they can be re-shaded for new appearance parameters — and
+//! differentiated exactly — without re-tracing geometry.
+
+pub mod camera;
+pub mod integrator;
+pub mod lights;
+pub mod shade;
+
+use crate::geometry::ply::PlyModel;
+use crate::geometry::tile::TileGeometry;
+use crate::geometry::yarn::YarnSet;
+use crate::image_io::Image;
+use crate::params::{Appearance, ClothParams, N_APPEARANCE};
+use crate::pattern::WeavePattern;
+use crate::scene::Scene;
+use crate::shading::bysdf::ShadeParams;
+use crate::shading::real::{Dual, Real};
+use camera::Camera;
+use integrator::{sample_rng, LightHit, PathBuf, PathVertex, Tracer};
+use lights::Light;
+use rayon::prelude::*;
+
+/// Switches for the skips and the parallelism of a render.
+#[derive(Clone, Debug)]
+pub struct RenderOptions {
+    /// Skip x→y transmission paths when no light reaches the back of the cloth.
+    pub skip_unlit_transmission: bool,
+    /// Build geometry for every repeat in view instead of one periodic tile (for benchmarks).
+    pub whole_fabric: bool,
+    /// Render only this window `(x, y, w, h)` of the image.
+    pub window: Option<(u32, u32, u32, u32)>,
+    /// Worker threads (`None`: rayon's default).
+    pub threads: Option<usize>,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        RenderOptions { skip_unlit_transmission: true, whole_fabric: false, window: None, threads: None }
+    }
+}
+
+/// Geometry, lights and camera built for one cloth + scene.
+pub struct Prepared {
+    /// Tile geometry (BVH).
+    pub geom: TileGeometry,
+    /// Lights.
+    pub lights: Vec<Light>,
+    /// Camera.
+    pub camera: Camera,
+    /// Plies and fibers.
+    pub plies: PlyModel,
+    /// Whether transmission paths are traced.
+    pub transmission: bool,
+    window: (u32, u32, u32, u32),
+    spp: u32,
+    seed: u64,
+    exposure: f32,
+}
+
+impl Prepared {
+    /// Build the BVH and the rest for `cloth` in `scene`.
+    pub fn new(cloth: &ClothParams, scene: &Scene, opts: &RenderOptions) -> Self {
+        let pattern = if opts.whole_fabric {
+            let reps_x = (scene.camera.tiles.ceil() as usize + 1).max(1);
+            let reps_y = ((scene.camera.tiles * scene.height as f32 / scene.width as f32).ceil() as usize + 1).max(1);
+            let p = &cloth.pattern;
+            let rows: Vec<Vec<bool>> =
+                (0..p.n_e() * reps_y).map(|i| (0..p.n_a() * reps_x).map(|j| p.get(i, j)).collect()).collect();
+            WeavePattern::from_rows_unreduced(&rows).unwrap_or_else(|_| cloth.pattern.clone())
+        } else {
+            cloth.pattern.clone()
+        };
+        let set = YarnSet::new(&pattern, cloth.r_e, cloth.r_a);
+        let geom = TileGeometry::new(set);
+        let (tx, ty) = (cloth.pattern.n_a() as f32 * 10.0, cloth.pattern.n_e() as f32 * 10.0);
+        let camera = Camera::new(&scene.camera, scene.width, scene.height, tx, ty, geom.z_top());
+        let lights = Light::from_rig(&scene.lights);
+        let transmission = !opts.skip_unlit_transmission || lights.iter().any(|l| l.lights_back());
+        let window = opts.window.unwrap_or((0, 0, scene.width, scene.height));
+        Prepared {
+            geom,
+            lights,
+            camera,
+            plies: PlyModel { n_p: cloth.n_p, n_f: cloth.n_f },
+            transmission,
+            window,
+            spp: scene.spp,
+            seed: scene.seed,
+            exposure: scene.exposure,
+        }
+    }
+
+    fn tracer<'a>(&'a self, sampling: &'a Appearance) -> Tracer<'a> {
+        Tracer {
+            geom: &self.geom,
+            plies: self.plies,
+            lights: &self.lights,
+            camera: &self.camera,
+            sampling,
+            transmission: self.transmission,
+        }
+    }
+
+    fn pixel_index(&self, x: u32, y: u32) -> u64 {
+        let (w, _) = self.camera.size();
+        (y as u64) * w as u64 + x as u64
+    }
+
+    /// Window size.
+    pub fn size(&self) -> (u32, u32) {
+        (self.window.2, self.window.3)
+    }
+
+    /// Trace and shade directly.
+    pub fn render(&self, a: &Appearance) -> Image {
+        let (wx, wy, w, h) = self.window;
+        let sp = ShadeParams::new(a);
+        let tracer = self.tracer(a);
+        let mut data = vec![[0.0f32; 3]; (w * h) as usize];
+        data.par_chunks_mut(w as usize).enumerate().for_each(|(row, out)| {
+            let mut buf = PathBuf::default();
+            let y = wy + row as u32;
+            for (col, px) in out.iter_mut().enumerate() {
+                let x = wx + col as u32;
+                let mut acc = [0.0f32; 3];
+                for s in 0..self.spp {
+                    let mut rng = sample_rng(self.seed, self.pixel_index(x, y), s as u64);
+                    let (jx, jy) = (rand::RngExt::random::<f32>(&mut rng), rand::RngExt::random::<f32>(&mut rng));
+                    tracer.trace(x as f32 + jx, y as f32 + jy, &mut rng, &mut buf);
+                    let l = shade::shade_path(&sp, buf.background, &buf.verts, &buf.lights);
+                    (0..3).for_each(|k| acc[k] += l[k]);
+                }
+                *px = acc.map(|v| v * self.exposure / self.spp as f32);
+            }
+        });
+        Image::new(w, h, data)
+    }
+
+    /// Record all paths of the render (sampled with `sampling` = θ₀) for re-shading.
+    pub fn record(&self, sampling: &Appearance) -> PathCache {
+        let (wx, wy, w, h) = self.window;
+        let tracer = self.tracer(sampling);
+        let rows: Vec<RowCache> = (0..h)
+            .into_par_iter()
+            .map(|row| {
+                let mut rc = RowCache::default();
+                let mut buf = PathBuf::default();
+                let y = wy + row;
+                for col in 0..w {
+                    let x = wx + col;
+                    for s in 0..self.spp {
+                        let mut rng = sample_rng(self.seed, self.pixel_index(x, y), s as u64);
+                        let (jx, jy) = (rand::RngExt::random::<f32>(&mut rng), rand::RngExt::random::<f32>(&mut rng));
+                        tracer.trace(x as f32 + jx, y as f32 + jy, &mut rng, &mut buf);
+                        rc.push(col, &buf);
+                    }
+                }
+                rc
+            })
+            .collect();
+        PathCache { width: w, height: h, spp: self.spp, exposure: self.exposure, rows }
+    }
+}
+
+#[derive(Default)]
+struct RowCache {
+    /// (column, background, first vertex, vertex count)
+    samples: Vec<(u32, [f32; 3], u32, u32)>,
+    verts: Vec<PathVertex>,
+    lights: Vec<LightHit>,
+}
+
+impl RowCache {
+    fn push(&mut self, col: u32, buf: &PathBuf) {
+        let v0 = self.verts.len() as u32;
+        let l0 = self.lights.len() as u32;
+        for v in &buf.verts {
+            let mut v = *v;
+            v.lights.0 += l0;
+            self.verts.push(v);
+        }
+        self.lights.extend_from_slice(&buf.lights);
+        self.samples.push((col, buf.background, v0, buf.verts.len() as u32));
+    }
+
+    fn shade<T: Real + Send>(&self, p: &ShadeParams<T>, w: u32, scale: f32) -> Vec<[T; 3]> {
+        let mut out = vec![[T::c(0.0); 3]; w as usize];
+        for &(col, bg, v0, nv) in &self.samples {
+            let l = shade::shade_path(p, bg, &self.verts[v0 as usize..(v0 + nv) as usize], &self.lights);
+            for k in 0..3 {
+                out[col as usize][k] += l[k] * scale;
+            }
+        }
+        out
+    }
+}
+
+/// The recorded paths of a render: re-shade for new appearance without re-tracing.
+pub struct PathCache {
+    width: u32,
+    height: u32,
+    spp: u32,
+    exposure: f32,
+    rows: Vec<RowCache>,
+}
+
+impl PathCache {
+    /// Image size.
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// Total recorded vertices (memory use indicator).
+    pub fn vertex_count(&self) -> usize {
+        self.rows.iter().map(|r| r.verts.len()).sum()
+    }
+
+    /// Re-shade with new appearance parameters.
+    pub fn shade(&self, a: &Appearance) -> Image {
+        let sp = ShadeParams::new(a);
+        let scale = self.exposure / self.spp as f32;
+        let data: Vec<[f32; 3]> = self.rows.par_iter().flat_map_iter(|r| r.shade(&sp, self.width, scale)).collect();
+        Image::new(self.width, self.height, data)
+    }
+
+    /// Re-shade with exact derivatives: per pixel and channel the value and ∂/∂θ for all
+    /// [`N_APPEARANCE`] appearance scalars.
+    pub fn shade_with_derivatives(&self, a: &Appearance) -> Vec<[Dual<N_APPEARANCE>; 3]> {
+        let sp = ShadeParams::with_derivatives(a);
+        let scale = self.exposure / self.spp as f32;
+        self.rows.par_iter().flat_map_iter(|r| r.shade(&sp, self.width, scale)).collect()
+    }
+
+    /// Mean squared error against `target` and its exact gradient with respect to the appearance
+    /// vector (chain rule through [`PathCache::shade_with_derivatives`]).
+    pub fn mse_and_gradient(&self, a: &Appearance, target: &Image) -> (f32, [f32; N_APPEARANCE]) {
+        let sp = ShadeParams::with_derivatives(a);
+        let scale = self.exposure / self.spp as f32;
+        let n = (self.width * self.height * 3) as f32;
+        let (loss, grad) = self
+            .rows
+            .par_iter()
+            .enumerate()
+            .map(|(row, r)| {
+                let px = r.shade(&sp, self.width, scale);
+                let mut loss = 0.0f32;
+                let mut g = [0.0f32; N_APPEARANCE];
+                for (col, p) in px.iter().enumerate() {
+                    let t = target.get(col as u32, row as u32);
+                    for k in 0..3 {
+                        let e = p[k].v - t[k];
+                        loss += e * e;
+                        g.iter_mut().zip(p[k].d.iter()).for_each(|(gi, di)| *gi += 2.0 * e * di);
+                    }
+                }
+                (loss, g)
+            })
+            .reduce(
+                || (0.0, [0.0; N_APPEARANCE]),
+                |(la, mut ga), (lb, gb)| {
+                    ga.iter_mut().zip(gb.iter()).for_each(|(a, b)| *a += b);
+                    (la + lb, ga)
+                },
+            );
+        (loss / n, grad.map(|g| g / n))
+    }
+}
+
+/// Render `cloth` in `scene` (convenience: prepare + render, optionally on `threads` threads).
+pub fn render(cloth: &ClothParams, scene: &Scene, opts: &RenderOptions) -> Image {
+    run_in_pool(opts.threads, || Prepared::new(cloth, scene, opts).render(&cloth.appearance))
+}
+
+/// Run `f` in a rayon pool of `threads` threads (or the global pool).
+pub fn run_in_pool<R: Send>(threads: Option<usize>, f: impl FnOnce() -> R + Send) -> R {
+    match threads {
+        Some(n) => rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build().expect("thread pool").install(f),
+        None => f(),
+    }
+}

@@ -1,0 +1,229 @@
+//! Scene description (camera, light rig, render settings) as stored in parameter files.
+
+use crate::params::{check_range, ParamError, Rgb};
+use serde::{Deserialize, Serialize};
+
+/// Camera projection.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Projection {
+    /// Parallel rays looking down −z (the default: a flat close-up).
+    #[default]
+    Orthographic,
+    /// Pinhole camera.
+    Perspective,
+}
+
+/// Camera: looks down on the cloth (the cloth lies in the xy plane, its front faces +z).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraSpec {
+    /// Projection kind.
+    pub projection: Projection,
+    /// Pattern repeats framed across the image width, [0.25, 64].
+    pub tiles: f32,
+    /// In-plane rotation of the cloth in the image, degrees, [-180, 180].
+    pub rotation_deg: f32,
+    /// Tilt of the view away from the normal, degrees, [0, 60].
+    pub tilt_deg: f32,
+    /// Vertical field of view of the perspective camera, degrees, [5, 90].
+    pub fov_deg: f32,
+    /// Offset of the view centre in pattern repeats (x, y), [-1e4, 1e4].
+    pub offset: [f32; 2],
+}
+
+impl Default for CameraSpec {
+    fn default() -> Self {
+        CameraSpec {
+            projection: Projection::Orthographic,
+            tiles: 2.0,
+            rotation_deg: 0.0,
+            tilt_deg: 0.0,
+            fov_deg: 30.0,
+            offset: [0.0, 0.0],
+        }
+    }
+}
+
+/// One light of the rig.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
+pub enum LightSpec {
+    /// Distant light. `direction` points from the cloth towards the light (z > 0: in front, z < 0:
+    /// behind). `cone_deg` > 0 makes it a distant disc of that half-angle (visible through gaps).
+    Directional {
+        /// Name (front, back, left, right, …).
+        name: String,
+        /// Direction towards the light (normalised on use).
+        direction: [f32; 3],
+        /// Irradiance on a surface facing the light (linear RGB), each in [0, 1000].
+        irradiance: Rgb,
+        /// Angular radius in degrees, [0, 60].
+        #[serde(default)]
+        cone_deg: f32,
+    },
+    /// Isotropic point light.
+    Point {
+        /// Name.
+        name: String,
+        /// Position in cloth units (pitch 10).
+        position: [f32; 3],
+        /// Radiant intensity (linear RGB), each in [0, 1e7].
+        intensity: Rgb,
+    },
+}
+
+/// Ambient light plus a list of lights (pipeline.md §1 default: ambient + front, back, two sides).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LightRig {
+    /// Uniform environment radiance from every direction (linear RGB), each in [0, 100].
+    pub ambient: Rgb,
+    /// Lights.
+    pub lights: Vec<LightSpec>,
+}
+
+impl LightRig {
+    /// The default rig: ambient + front, back (through the cloth) and two side lights.
+    pub fn default_rig() -> Self {
+        let dir = |name: &str, d: [f32; 3], e: f32, cone: f32| LightSpec::Directional {
+            name: name.into(),
+            direction: d,
+            irradiance: [e, e, e],
+            cone_deg: cone,
+        };
+        LightRig {
+            ambient: [0.08, 0.08, 0.08],
+            lights: vec![
+                dir("front", [0.25, -0.35, 1.0], 1.6, 0.0),
+                dir("back", [0.0, 0.0, -1.0], 1.2, 20.0),
+                dir("left", [-1.0, 0.2, 0.55], 0.45, 0.0),
+                dir("right", [1.0, -0.2, 0.55], 0.45, 0.0),
+            ],
+        }
+    }
+
+    /// A named rig: `default`, `front`, `back`, `both` (front + back), `sides`.
+    pub fn named(name: &str) -> Option<Self> {
+        let full = Self::default_rig();
+        let keep = |names: &[&str]| LightRig {
+            ambient: full.ambient,
+            lights: full
+                .lights
+                .iter()
+                .filter(|l| match l {
+                    LightSpec::Directional { name, .. } | LightSpec::Point { name, .. } => {
+                        names.contains(&name.as_str())
+                    }
+                })
+                .cloned()
+                .collect(),
+        };
+        match name {
+            "default" | "all" => Some(full),
+            "front" => Some(keep(&["front"])),
+            "back" => Some(keep(&["back"])),
+            "both" => Some(keep(&["front", "back"])),
+            "sides" => Some(keep(&["left", "right"])),
+            _ => None,
+        }
+    }
+
+    /// True when some light (or ambient) reaches the back of the cloth.
+    pub fn lights_back(&self) -> bool {
+        self.ambient.iter().any(|&a| a > 0.0)
+            || self.lights.iter().any(|l| match l {
+                LightSpec::Directional { direction, .. } => direction[2] < 0.0,
+                LightSpec::Point { position, .. } => position[2] < 0.0,
+            })
+    }
+}
+
+impl Default for LightRig {
+    fn default() -> Self {
+        Self::default_rig()
+    }
+}
+
+/// Everything besides the cloth that a render needs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Scene {
+    /// Image width in pixels, [8, 8192].
+    pub width: u32,
+    /// Image height in pixels, [8, 8192].
+    pub height: u32,
+    /// Samples per pixel, [1, 65536].
+    pub spp: u32,
+    /// Seed of the render's random numbers.
+    pub seed: u64,
+    /// Camera.
+    pub camera: CameraSpec,
+    /// Lights.
+    pub lights: LightRig,
+    /// Exposure multiplier applied to the linear image before writing, [1e-4, 1e4].
+    pub exposure: f32,
+}
+
+impl Default for Scene {
+    fn default() -> Self {
+        Scene {
+            width: 256,
+            height: 256,
+            spp: 16,
+            seed: 1,
+            camera: CameraSpec::default(),
+            lights: LightRig::default_rig(),
+            exposure: 1.0,
+        }
+    }
+}
+
+impl Scene {
+    /// Validate ranges, naming the offending field.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check_range("scene.width", self.width as f64, 8.0, 8192.0)?;
+        check_range("scene.height", self.height as f64, 8.0, 8192.0)?;
+        check_range("scene.spp", self.spp as f64, 1.0, 65536.0)?;
+        check_range("scene.exposure", self.exposure as f64, 1e-4, 1e4)?;
+        let c = &self.camera;
+        check_range("scene.camera.tiles", c.tiles as f64, 0.25, 64.0)?;
+        check_range("scene.camera.rotation_deg", c.rotation_deg as f64, -180.0, 180.0)?;
+        check_range("scene.camera.tilt_deg", c.tilt_deg as f64, 0.0, 60.0)?;
+        check_range("scene.camera.fov_deg", c.fov_deg as f64, 5.0, 90.0)?;
+        for (k, o) in c.offset.iter().enumerate() {
+            check_range(&format!("scene.camera.offset[{k}]"), *o as f64, -1e4, 1e4)?;
+        }
+        for (k, a) in self.lights.ambient.iter().enumerate() {
+            check_range(&format!("scene.lights.ambient[{k}]"), *a as f64, 0.0, 100.0)?;
+        }
+        for (i, l) in self.lights.lights.iter().enumerate() {
+            match l {
+                LightSpec::Directional { direction, irradiance, cone_deg, .. } => {
+                    for (k, d) in direction.iter().enumerate() {
+                        check_range(&format!("scene.lights.lights[{i}].direction[{k}]"), *d as f64, -1e3, 1e3)?;
+                    }
+                    if direction.iter().map(|d| d * d).sum::<f32>() < 1e-12 {
+                        return Err(ParamError::Invalid {
+                            field: format!("scene.lights.lights[{i}].direction"),
+                            msg: "must be a non-zero vector".into(),
+                        });
+                    }
+                    for (k, e) in irradiance.iter().enumerate() {
+                        check_range(&format!("scene.lights.lights[{i}].irradiance[{k}]"), *e as f64, 0.0, 1000.0)?;
+                    }
+                    check_range(&format!("scene.lights.lights[{i}].cone_deg"), *cone_deg as f64, 0.0, 60.0)?;
+                }
+                LightSpec::Point { position, intensity, .. } => {
+                    for (k, p) in position.iter().enumerate() {
+                        check_range(&format!("scene.lights.lights[{i}].position[{k}]"), *p as f64, -1e5, 1e5)?;
+                    }
+                    for (k, e) in intensity.iter().enumerate() {
+                        check_range(&format!("scene.lights.lights[{i}].intensity[{k}]"), *e as f64, 0.0, 1e7)?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}

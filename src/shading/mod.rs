@@ -1,0 +1,5 @@
+//! The BYSDF yarn shading model, over `f32` or dual numbers.
+
+pub mod bysdf;
+pub mod ggx;
+pub mod real;
