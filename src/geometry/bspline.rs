@@ -22,10 +22,10 @@ impl PeriodicBSpline {
 
     fn locate(&self, s: f32) -> (usize, f32) {
         let k = self.ctrl.len();
-        let u = (s / self.period).rem_euclid(1.0) * k as f32 - 0.5;
+        let u = s * (k as f32 / self.period) - 0.5;
         let i = u.floor();
         let t = u - i;
-        (((i as i64).rem_euclid(k as i64)) as usize, t)
+        ((i as i64).rem_euclid(k as i64) as usize, t)
     }
 
     fn c(&self, i: usize) -> f32 {

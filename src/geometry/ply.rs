@@ -244,7 +244,7 @@ impl PlyModel {
         // Fiber table at θ_f = u_p + κ_f ℓ_p (ply azimuth + fiber twist × ply arc length).
         let u_p = n2.y.atan2(n2.x) - l.beta;
         let ell_p = f.arc * (1.0 + (l.ring * l.kappa).powi(2)).sqrt();
-        let kappa_f = -FIBER_TWIST_DEG.to_radians().tan() / l.rp;
+        let kappa_f = if l.rp > 1e-6 { -FIBER_TWIST_DEG.to_radians().tan() / l.rp } else { 0.0 };
         let theta_f = u_p + kappa_f * ell_p;
         let fib = fiber_table(self.n_f);
         let pert = CrossSection::lookup(&fib.pert, theta_f);

@@ -5,7 +5,11 @@
 //! xy-cell finds every tube that reaches into it. A ray leaving the cell re-enters on the opposite
 //! side: one tile of the minimum pattern stands for the whole (infinite) fabric.
 
-use super::yarn::{YarnSet, CTRL_PER_CELL, PITCH};
+use super::yarn::{YarnSet, PITCH};
+
+/// Capsules per yarn per crossed cell. Shading uses the exact spline tube, so the capsule chain only
+/// has to find hits: 6 per cell keeps the chain within ~0.07 units of the tube (sagitta of the crimp).
+pub const SEGMENTS_PER_CELL: usize = 6;
 use glam::{Vec3, Vec3A};
 use obvhs::{aabb::Aabb, cwbvh::CwBvh, ray::Ray, Boundable, BvhBuildParams};
 
@@ -94,9 +98,9 @@ impl TileGeometry {
     pub fn new(set: YarnSet) -> Self {
         let mut caps = Vec::new();
         for (yi, y) in set.yarns.iter().enumerate() {
-            let n = (y.period() / PITCH) as i64 * CTRL_PER_CELL as i64;
+            let n = (y.period() / PITCH).round() as i64 * SEGMENTS_PER_CELL as i64;
             let ds = y.period() / n as f32;
-            let margin = CTRL_PER_CELL as i64;
+            let margin = SEGMENTS_PER_CELL as i64;
             for k in -margin..n + margin {
                 let (s0, s1) = (k as f32 * ds, (k + 1) as f32 * ds);
                 caps.push(Capsule { a: y.point(s0).into(), b: y.point(s1).into(), r: y.radius, yarn: yi as u32 });
@@ -220,13 +224,14 @@ impl TileGeometry {
             2.0 * r
         };
         for _ in 0..4 {
-            let gt = g(t);
+            let pt = p + d * t;
+            let s = y.closest_s(pt);
+            let off = pt - y.point(s);
+            let gt = off.length() - r;
             if gt.abs() < 1e-4 * r {
                 return t;
             }
-            let pt = p + d * t;
-            let (_, s) = y.distance(pt);
-            let n = (pt - y.point(s)).normalize_or_zero();
+            let n = off.normalize_or_zero();
             let slope = d.dot(n);
             if slope < 0.1 {
                 break;

@@ -140,7 +140,7 @@ impl YarnCurve {
     /// Closest curve parameter to `p` (Newton on `(p − c(s))·c'(s) = 0`, started at the projection).
     pub fn closest_s(&self, p: Vec3) -> f32 {
         let mut s = self.s_of(p);
-        for _ in 0..3 {
+        for _ in 0..2 {
             let (z, dz, ddz) = self.height.eval(s);
             let ps = self.s_of(p);
             // g(s) = (ps − s) + (pz − z)·dz ; g'(s) = −1 − dz² + (pz − z)·ddz

@@ -46,10 +46,7 @@ pub fn profile(g: &Gray, axis_x: bool) -> Vec<f64> {
         p.iter_mut().for_each(|v| *v /= g.h as f64);
         p
     } else {
-        g.data
-            .chunks(g.w)
-            .map(|r| r.iter().map(|&v| v as f64).sum::<f64>() / g.w as f64)
-            .collect()
+        g.data.chunks(g.w).map(|r| r.iter().map(|&v| v as f64).sum::<f64>() / g.w as f64).collect()
     }
 }
 
@@ -60,18 +57,14 @@ pub fn detrend(p: &mut [f64]) {
         return;
     }
     // Orthogonal polynomial basis on t ∈ [-1, 1] (Gram–Schmidt on 1, t, t²).
-    let t: Vec<f64> = (0..n)
-        .map(|i| 2.0 * i as f64 / (n - 1) as f64 - 1.0)
-        .collect();
+    let t: Vec<f64> = (0..n).map(|i| 2.0 * i as f64 / (n - 1) as f64 - 1.0).collect();
     let mut basis: Vec<Vec<f64>> = vec![vec![1.0; n], t.clone(), t.iter().map(|v| v * v).collect()];
     for i in 0..basis.len() {
         for j in 0..i {
             let (bj, bi) = (basis[j].clone(), &mut basis[i]);
             let num: f64 = bi.iter().zip(&bj).map(|(a, b)| a * b).sum();
             let den: f64 = bj.iter().map(|b| b * b).sum();
-            bi.iter_mut()
-                .zip(&bj)
-                .for_each(|(a, b)| *a -= num / den * b);
+            bi.iter_mut().zip(&bj).for_each(|(a, b)| *a -= num / den * b);
         }
     }
     for b in &basis {
@@ -109,9 +102,8 @@ pub fn pitch_from_profile(p: &[f64], min_pitch: f64) -> Option<(f64, f64)> {
         return None;
     }
     let lo = (min_pitch.ceil() as usize).max(2);
-    let peaks: Vec<usize> = (lo..ac.len() - 1)
-        .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1] && ac[d] > 0.0)
-        .collect();
+    let peaks: Vec<usize> =
+        (lo..ac.len() - 1).filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1] && ac[d] > 0.0).collect();
     let best = peaks.iter().map(|&d| ac[d]).fold(f64::MIN, f64::max);
     let &d = peaks.iter().find(|&&d| ac[d] >= 0.75 * best)?;
     let pitch = d as f64 + parabola_offset(ac[d - 1], ac[d], ac[d + 1]);
@@ -128,9 +120,7 @@ pub fn valleys(p: &[f64], pitch: f64) -> Vec<f64> {
         .map(|i| {
             k.iter()
                 .enumerate()
-                .map(|(j, &kv)| {
-                    kv as f64 * p[(i + j as isize - r).clamp(0, n as isize - 1) as usize]
-                })
+                .map(|(j, &kv)| kv as f64 * p[(i + j as isize - r).clamp(0, n as isize - 1) as usize])
                 .sum()
         })
         .collect();

@@ -21,21 +21,13 @@ pub struct Gray {
 impl Gray {
     /// A zero image.
     pub fn new(w: usize, h: usize) -> Self {
-        Self {
-            w,
-            h,
-            data: vec![0.0; w * h],
-        }
+        Self { w, h, data: vec![0.0; w * h] }
     }
 
     /// Luminance (Rec. 709 weights on linear RGB) of `img`.
     pub fn from_rgb(img: &Rgb32FImage) -> Self {
         let (w, h) = (img.width() as usize, img.height() as usize);
-        let data = img
-            .as_raw()
-            .par_chunks(3)
-            .map(|p| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2])
-            .collect();
+        let data = img.as_raw().par_chunks(3).map(|p| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]).collect();
         Self { w, h, data }
     }
 
@@ -60,12 +52,7 @@ impl Gray {
     pub fn mean_std(&self) -> (f64, f64) {
         let n = self.data.len().max(1) as f64;
         let m = self.data.iter().map(|&v| v as f64).sum::<f64>() / n;
-        let v = self
-            .data
-            .iter()
-            .map(|&v| (v as f64 - m).powi(2))
-            .sum::<f64>()
-            / n;
+        let v = self.data.iter().map(|&v| (v as f64 - m).powi(2)).sum::<f64>() / n;
         (m, v.sqrt())
     }
 }
@@ -73,9 +60,7 @@ impl Gray {
 /// Normalised 1-D Gaussian kernel with radius `ceil(3 sigma)`.
 pub fn gaussian_kernel(sigma: f32) -> Vec<f32> {
     let r = (3.0 * sigma).ceil().max(1.0) as i32;
-    let k: Vec<f32> = (-r..=r)
-        .map(|i| (-(i * i) as f32 / (2.0 * sigma * sigma)).exp())
-        .collect();
+    let k: Vec<f32> = (-r..=r).map(|i| (-(i * i) as f32 / (2.0 * sigma * sigma)).exp()).collect();
     let s: f32 = k.iter().sum();
     k.into_iter().map(|v| v / s).collect()
 }
@@ -91,33 +76,29 @@ pub fn blur_interleaved(data: &[f32], w: usize, h: usize, c: usize, sigma: f32) 
     let row_len = w * c;
     // Horizontal pass.
     let mut tmp = vec![0.0f32; data.len()];
-    tmp.par_chunks_mut(row_len)
-        .zip(data.par_chunks(row_len))
-        .for_each(|(out, inp)| {
-            for x in 0..w {
-                for ch in 0..c {
-                    let mut acc = 0.0;
-                    for (i, &kv) in k.iter().enumerate() {
-                        let xx = (x as isize + i as isize - r).clamp(0, w as isize - 1) as usize;
-                        acc += kv * inp[xx * c + ch];
-                    }
-                    out[x * c + ch] = acc;
+    tmp.par_chunks_mut(row_len).zip(data.par_chunks(row_len)).for_each(|(out, inp)| {
+        for x in 0..w {
+            for ch in 0..c {
+                let mut acc = 0.0;
+                for (i, &kv) in k.iter().enumerate() {
+                    let xx = (x as isize + i as isize - r).clamp(0, w as isize - 1) as usize;
+                    acc += kv * inp[xx * c + ch];
                 }
+                out[x * c + ch] = acc;
             }
-        });
+        }
+    });
     // Vertical pass: accumulate whole rows (vectorises well).
     let mut out = vec![0.0f32; data.len()];
-    out.par_chunks_mut(row_len)
-        .enumerate()
-        .for_each(|(y, orow)| {
-            for (i, &kv) in k.iter().enumerate() {
-                let yy = (y as isize + i as isize - r).clamp(0, h as isize - 1) as usize;
-                let irow = &tmp[yy * row_len..(yy + 1) * row_len];
-                for (o, &v) in orow.iter_mut().zip(irow) {
-                    *o += kv * v;
-                }
+    out.par_chunks_mut(row_len).enumerate().for_each(|(y, orow)| {
+        for (i, &kv) in k.iter().enumerate() {
+            let yy = (y as isize + i as isize - r).clamp(0, h as isize - 1) as usize;
+            let irow = &tmp[yy * row_len..(yy + 1) * row_len];
+            for (o, &v) in orow.iter_mut().zip(irow) {
+                *o += kv * v;
             }
-        });
+        }
+    });
     out
 }
 
@@ -130,11 +111,7 @@ pub fn blur_rgb(img: &Rgb32FImage, sigma: f32) -> Rgb32FImage {
 
 /// Gaussian blur of a grey image.
 pub fn blur_gray(g: &Gray, sigma: f32) -> Gray {
-    Gray {
-        w: g.w,
-        h: g.h,
-        data: blur_interleaved(&g.data, g.w, g.h, 1, sigma),
-    }
+    Gray { w: g.w, h: g.h, data: blur_interleaved(&g.data, g.w, g.h, 1, sigma) }
 }
 
 /// Bilinear sample of channel-interleaved data at `(x, y)` (pixel centres at integers), clamped.
@@ -163,14 +140,12 @@ pub fn warp_rgb(img: &Rgb32FImage, h: &Homography, out_w: usize, out_h: usize) -
     let (w, hh) = (img.width() as usize, img.height() as usize);
     let src = img.as_raw();
     let mut out = vec![0.0f32; out_w * out_h * 3];
-    out.par_chunks_mut(out_w * 3)
-        .enumerate()
-        .for_each(|(v, row)| {
-            for u in 0..out_w {
-                let (x, y) = apply(h, u as f64, v as f64);
-                sample_into(src, w, hh, 3, x, y, &mut row[u * 3..u * 3 + 3]);
-            }
-        });
+    out.par_chunks_mut(out_w * 3).enumerate().for_each(|(v, row)| {
+        for u in 0..out_w {
+            let (x, y) = apply(h, u as f64, v as f64);
+            sample_into(src, w, hh, 3, x, y, &mut row[u * 3..u * 3 + 3]);
+        }
+    });
     Rgb32FImage::from_raw(out_w as u32, out_h as u32, out).expect("buffer size")
 }
 
@@ -183,11 +158,7 @@ pub fn warp_gray(g: &Gray, h: &Homography, out_w: usize, out_h: usize) -> Gray {
             sample_into(&g.data, g.w, g.h, 1, x, y, std::slice::from_mut(o));
         }
     });
-    Gray {
-        w: out_w,
-        h: out_h,
-        data: out,
-    }
+    Gray { w: out_w, h: out_h, data: out }
 }
 
 /// Peak position refinement: vertex offset in `[-0.5, 0.5]` of the parabola through

@@ -80,11 +80,7 @@ pub fn normalize(h: &Homography) -> Homography {
 /// Cross product of homogeneous 3-vectors (line through two points / intersection of two lines).
 #[inline]
 pub fn cross3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 /// Eigen-decomposition of the symmetric `n×n` matrix `a` (row-major) by cyclic Jacobi rotations.
@@ -142,10 +138,7 @@ pub fn sym_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<Vec<f64>>) {
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|&i, &j| m[j * n + j].total_cmp(&m[i * n + i]));
     let vals = order.iter().map(|&i| m[i * n + i]).collect();
-    let vecs = order
-        .iter()
-        .map(|&i| (0..n).map(|k| v[k * n + i]).collect())
-        .collect();
+    let vecs = order.iter().map(|&i| (0..n).map(|k| v[k * n + i]).collect()).collect();
     (vals, vecs)
 }
 

@@ -93,7 +93,7 @@ impl Default for PrepOptions {
             regularize: true,
             kpca: KpcaParams::default(),
             min_structure: 0.35,
-            min_period_corr: 0.5,
+            min_period_corr: 0.7,
             min_pitch: 4.0,
         }
     }
@@ -162,11 +162,7 @@ pub struct Prepared {
 fn check_input(img: &Rgb32FImage) -> Result<(), PrepError> {
     let (w, h) = img.dimensions();
     if w < MIN_SIZE || h < MIN_SIZE {
-        return Err(PrepError::TooSmall {
-            width: w,
-            height: h,
-            min: MIN_SIZE,
-        });
+        return Err(PrepError::TooSmall { width: w, height: h, min: MIN_SIZE });
     }
     if let Some(i) = img.as_raw().iter().position(|v| !v.is_finite()) {
         let p = (i / 3) as u32;
@@ -219,11 +215,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let r = &rect.image;
     let (w, h) = r.dimensions();
     if w < MIN_SIZE || h < MIN_SIZE {
-        return Err(PrepError::TooSmall {
-            width: w,
-            height: h,
-            min: MIN_SIZE,
-        });
+        return Err(PrepError::TooSmall { width: w, height: h, min: MIN_SIZE });
     }
     // 2. First pitch estimate and periodicity strength (before any regularization, which
     //    could impose structure on noise).
@@ -245,8 +237,10 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     // 4. Minimum pattern size (DMF).
     let (per_x, per_y) = detect_period(
         &Gray::from_rgb(&blurred),
-        0.75 * ax0.pitch as f64,
-        0.75 * ay0.pitch as f64,
+        // A repeat holds at least two yarns each way (n = 1 would mean the yarns never
+        // interlace), so lags below 1.5 pitches are not candidates.
+        1.5 * ax0.pitch as f64,
+        1.5 * ay0.pitch as f64,
         opts.min_period_corr as f64,
     );
     // 5. Kernel PCA.
@@ -258,8 +252,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     // 6. Grid on the regularized image (falls back to the first estimate if inconsistent).
     let gr = Gray::from_rgb(&regularized);
     let pick = |a: Option<AxisGrid>, a0: &AxisGrid| -> AxisGrid {
-        a.filter(|a| (a.pitch / a0.pitch - 1.0).abs() < 0.2)
-            .unwrap_or_else(|| a0.clone())
+        a.filter(|a| (a.pitch / a0.pitch - 1.0).abs() < 0.2).unwrap_or_else(|| a0.clone())
     };
     let ax = pick(analyze_axis(&gr, true, min_pitch), &ax0);
     let ay = pick(analyze_axis(&gr, false, min_pitch), &ay0);
@@ -287,12 +280,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         grid_strength: [ax0.strength, ay0.strength],
         n_e,
         n_a,
-        crop: CropRect {
-            x: cx,
-            y: cy,
-            w: cw,
-            h: ch,
-        },
+        crop: CropRect { x: cx, y: cy, w: cw, h: ch },
     })
 }
 
@@ -358,27 +346,17 @@ mod tests {
     use super::*;
 
     fn opts_no_persp() -> PrepOptions {
-        PrepOptions {
-            perspective: false,
-            ..Default::default()
-        }
+        PrepOptions { perspective: false, ..Default::default() }
     }
 
     #[test]
     fn rotation_is_recovered_within_half_a_degree() {
         let p = twill22();
-        for (i, &a) in [-15.0, -9.7, -3.2, 0.0, 0.8, 6.4, 12.5, 15.0]
-            .iter()
-            .enumerate()
-        {
+        for (i, &a) in [-15.0, -9.7, -3.2, 0.0, 0.8, 6.4, 12.5, 15.0].iter().enumerate() {
             let pitch = [12.0, 16.0, 20.0][i % 3];
             let img = render_rotated(&p, pitch, 256, 256, a);
             let r = rectify::rectify(&img, false);
-            assert!(
-                (r.angle_deg as f64 - a).abs() < 0.5,
-                "angle {a}: found {}",
-                r.angle_deg
-            );
+            assert!((r.angle_deg as f64 - a).abs() < 0.5, "angle {a}: found {}", r.angle_deg);
         }
         // Plain weave and a non-square image.
         let img = render_rotated(&plain(), 14.0, 300, 220, -11.0);
@@ -411,11 +389,8 @@ mod tests {
             let f = (i as f64 + 0.5) / 5.0;
             // Line in texture space l → line in output space Cᵀ l; direction (b, −a).
             for is_warp in [false, true] {
-                let l = if is_warp {
-                    [1.0, 0.0, -(tx0 + f * (tx1 - tx0))]
-                } else {
-                    [0.0, 1.0, -(ty0 + f * (ty1 - ty0))]
-                };
+                let l =
+                    if is_warp { [1.0, 0.0, -(tx0 + f * (tx1 - tx0))] } else { [0.0, 1.0, -(ty0 + f * (ty1 - ty0))] };
                 let a = c[0][0] * l[0] + c[1][0] * l[1] + c[2][0] * l[2];
                 let b = c[0][1] * l[0] + c[1][1] * l[1] + c[2][1] * l[2];
                 let mut ang = (-a).atan2(b).to_degrees();
@@ -440,14 +415,11 @@ mod tests {
     #[test]
     fn perspective_tilt_is_removed() {
         let (w, h) = (320u32, 320u32);
-        for (k, &(tp, ty, rot)) in [(10.0, 0.0, 0.0), (-7.0, 6.0, 4.0), (3.0, -10.0, -2.0)]
-            .iter()
-            .enumerate()
-        {
+        for (k, &(tp, ty, rot)) in [(10.0, 0.0, 0.0), (-7.0, 6.0, 4.0), (3.0, -10.0, -2.0)].iter().enumerate() {
             let pat = if k == 1 { plain() } else { twill22() };
             let pitch = 13.0;
             let cam = camera(w as f64, h as f64, 1.1 * w as f64, tp, ty);
-            let (s, c) = (rot as f64).to_radians().sin_cos();
+            let (s, c) = f64::to_radians(rot).sin_cos();
             // Cloth frame → image: rotate about the centre, then the camera homography.
             let rotm = mat3_mul(
                 &translation(w as f64 / 2.0, h as f64 / 2.0),
@@ -461,18 +433,12 @@ mod tests {
             let img = render(&pat, pitch, w, h, |x, y| apply(&to_tex, x, y));
             // Without correction the lines visibly converge (the test can fail).
             let (weft0, warp0) = line_angles(&to_tex, w as f64, h as f64);
-            assert!(
-                spread(&weft0).max(spread(&warp0)) > 2.0,
-                "{weft0:?} {warp0:?}"
-            );
+            assert!(spread(&weft0).max(spread(&warp0)) > 2.0, "{weft0:?} {warp0:?}");
             let pr = prepare(&img, &PrepOptions::default()).expect("prepare");
             assert!(pr.perspective_applied, "case {k}");
             let comp = mat3_mul(&to_tex, &pr.homography);
             let (weft, warp) = line_angles(&comp, pr.width as f64, pr.height as f64);
-            assert!(
-                spread(&weft) < 0.5 && spread(&warp) < 0.5,
-                "case {k}: {weft:?} {warp:?}"
-            );
+            assert!(spread(&weft) < 0.5 && spread(&warp) < 0.5, "case {k}: {weft:?} {warp:?}");
             let worst = weft.iter().chain(&warp).fold(0.0f64, |m, a| m.max(a.abs()));
             assert!(worst < 1.0, "case {k}: not axis aligned {weft:?} {warp:?}");
         }
@@ -480,12 +446,8 @@ mod tests {
 
     #[test]
     fn pitch_and_pattern_size_for_four_weaves_at_three_scales() {
-        let cases: [(&str, Vec<Vec<u8>>); 4] = [
-            ("plain", plain()),
-            ("basket2", basket2()),
-            ("twill22", twill22()),
-            ("satin5", satin5()),
-        ];
+        let cases: [(&str, Vec<Vec<u8>>); 4] =
+            [("plain", plain()), ("basket2", basket2()), ("twill22", twill22()), ("satin5", satin5())];
         for (name, p) in &cases {
             let (ne, na) = (p.len(), p[0].len());
             for (k, &pitch) in [12.0, 20.0, 32.0].iter().enumerate() {
@@ -493,8 +455,7 @@ mod tests {
                 let size = ((2.3 * period / 0.95).ceil() as u32).max(256);
                 let angle = [2.5, -1.5, 0.0][k];
                 let img = render_rotated(p, pitch, size, size, angle);
-                let pr = prepare(&img, &PrepOptions::default())
-                    .unwrap_or_else(|e| panic!("{name} pitch {pitch}: {e}"));
+                let pr = prepare(&img, &PrepOptions::default()).unwrap_or_else(|e| panic!("{name} pitch {pitch}: {e}"));
                 let msg = format!("{name} pitch {pitch}: {}", pr.to_json());
                 assert!((pr.pitch_x as f64 / pitch - 1.0).abs() < 0.02, "{msg}");
                 assert!((pr.pitch_y as f64 / pitch - 1.0).abs() < 0.02, "{msg}");
@@ -506,36 +467,55 @@ mod tests {
 
     #[test]
     fn single_repeat_image() {
+        // A custom (logo-like) 12×10 pattern with no repeat inside the image.
+        use rand::prelude::*;
+        let mut rng = StdRng::seed_from_u64(3);
+        let custom: Vec<Vec<u8>> = (0..12).map(|_| (0..10).map(|_| rng.random_range(0..2u8)).collect()).collect();
+        let img = render_rotated(&custom, 16.0, 160, 192, 3.0);
+        let pr = prepare(&img, &PrepOptions::default()).expect("custom single repeat");
+        assert!((pr.angle_deg - 3.0).abs() < 0.5, "{}", pr.to_json());
+        assert!((pr.pitch_x / 16.0 - 1.0).abs() < 0.02, "{}", pr.to_json());
+        assert!(!pr.repeated_x && !pr.repeated_y, "{}", pr.to_json());
+        let img = render_flat(&custom, 16.0, 160, 192);
+        let pr = prepare(&img, &PrepOptions::default()).expect("custom, axis aligned");
+        assert_eq!((pr.n_e, pr.n_a), (12, 10), "{}", pr.to_json());
+        // Small single repeats of regular weaves (angle estimation skipped: with only 4–5 yarns
+        // a satin's diagonal biases the Radon peak by ~1°, see docs/prep.md).
+        let opts = PrepOptions { rectify: false, ..Default::default() };
         let img = render_flat(&satin5(), 32.0, 160, 160);
-        let pr = prepare(&img, &PrepOptions::default()).expect("single repeat");
+        let pr = prepare(&img, &opts).expect("single satin repeat");
         assert!(!pr.repeated_x && !pr.repeated_y, "{}", pr.to_json());
         assert_eq!((pr.n_e, pr.n_a), (5, 5), "{}", pr.to_json());
         assert!((pr.pitch_x / 32.0 - 1.0).abs() < 0.02, "{}", pr.to_json());
         let img = render_flat(&twill22(), 20.0, 80, 80);
-        let pr = prepare(&img, &opts_no_persp()).expect("single twill repeat");
+        let pr = prepare(&img, &opts).expect("single twill repeat");
         assert_eq!((pr.n_e, pr.n_a), (4, 4), "{}", pr.to_json());
     }
 
     #[test]
     fn regularization_gains_psnr_on_noisy_blurred_input() {
         let clean = render_flat(&twill22(), 12.0, 240, 240);
-        let noisy = add_noise(&blur_rgb(&clean, 1.0), 0.08, 7);
+        let blurred = blur_rgb(&clean, 0.7);
+        let noisy = add_noise(&blurred, 0.12, 7);
         let base = psnr(&noisy, &clean);
         // Direct call with the known pitch and period.
         let reg = regularize::regularize(&noisy, 12.0, 48.0, 48.0, &KpcaParams::default());
         let gain = psnr(&reg, &clean) - base;
         assert!(gain >= 3.0, "direct: input {base:.2} dB, gain {gain:.2} dB");
         // Whole chain without rectification (same pixel frame).
-        let opts = PrepOptions {
-            rectify: false,
-            ..Default::default()
-        };
+        let opts = PrepOptions { rectify: false, ..Default::default() };
         let pr = prepare(&noisy, &opts).expect("prepare");
         let gain = psnr(&pr.regularized, &clean) - base;
         assert!(gain >= 3.0, "prepare: gain {gain:.2} dB; {}", pr.to_json());
-        // And the blur alone is not what gives the gain.
+        // The gain is not just the blur: KPCA removes most of the noise (measured against the
+        // blurred clean image, which is all a denoiser can hope to recover).
         let blur_only = blur_rgb(&noisy, 12.0 / 16.0);
-        assert!(psnr(&pr.regularized, &clean) > psnr(&blur_only, &clean) + 1.0);
+        let (p_noisy, p_blur, p_kpca) =
+            (psnr(&noisy, &blurred), psnr(&blur_only, &blurred), psnr(&pr.regularized, &blurred));
+        assert!(
+            p_kpca > p_blur + 6.0 && p_kpca > p_noisy + 10.0,
+            "vs blurred clean: noisy {p_noisy:.2}, blur only {p_blur:.2}, kpca {p_kpca:.2}"
+        );
     }
 
     #[test]
@@ -558,16 +538,10 @@ mod tests {
     #[test]
     fn bad_inputs() {
         let small = Rgb32FImage::new(31, 100);
-        assert!(matches!(
-            prepare(&small, &PrepOptions::default()),
-            Err(PrepError::TooSmall { width: 31, .. })
-        ));
+        assert!(matches!(prepare(&small, &PrepOptions::default()), Err(PrepError::TooSmall { width: 31, .. })));
         let mut img = render_flat(&plain(), 12.0, 64, 64);
         img.put_pixel(5, 7, image::Rgb([0.1, f32::NAN, 0.2]));
-        assert_eq!(
-            prepare(&img, &PrepOptions::default()).unwrap_err(),
-            PrepError::NonFinite { x: 5, y: 7 }
-        );
+        assert_eq!(prepare(&img, &PrepOptions::default()).unwrap_err(), PrepError::NonFinite { x: 5, y: 7 });
         img.put_pixel(5, 7, image::Rgb([0.1, f32::INFINITY, 0.2]));
         assert!(prepare(&img, &PrepOptions::default()).is_err());
     }
@@ -588,18 +562,23 @@ mod tests {
         assert!(v["homography"][2][2].as_f64().is_some());
         assert!(v.get("rectified").is_none());
     }
-}
 
-
-#[cfg(test)]
-mod debug_tmp {
-    use super::testutil::*;
-    use super::*;
+    /// Timing on a 1024² synthetic plain weave at pitch 12 (worst case for KPCA: ~1700 tiles).
+    /// Run with `cargo test --release -- --ignored timing --nocapture`.
     #[test]
     #[ignore]
-    fn dbg() {
-        let img = render_rotated(&satin5(), 20.0, 256, 256, -1.5);
-        let pr = prepare(&img, &PrepOptions::default()).unwrap();
-        println!("angle {} pitch {} {} n {} {} w {} h {} H {:?}", pr.angle_deg, pr.pitch_x, pr.pitch_y, pr.n_e, pr.n_a, pr.width, pr.height, pr.homography);
+    fn timing_1024() {
+        let img = render_rotated(&plain(), 12.0, 1024, 1024, 4.0);
+        for _ in 0..3 {
+            let t = std::time::Instant::now();
+            let pr = prepare(&img, &PrepOptions::default()).unwrap();
+            println!(
+                "1024² plain pitch 12: {:.3} s, n {}×{}, pitch {:.2}",
+                t.elapsed().as_secs_f64(),
+                pr.n_e,
+                pr.n_a,
+                pr.pitch_x
+            );
+        }
     }
 }

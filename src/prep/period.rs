@@ -109,11 +109,7 @@ pub fn dmf_rows(g: &Gray, max_lag: usize) -> (Vec<f64>, f64) {
 /// Finds the period from a DMF (see module docs). `n` is the signal length, `min_lag` the
 /// smallest admissible period (e.g. ~0.75 pitch).
 pub fn period_from_dmf(dmf: &[f64], var: f64, n: usize, min_lag: f64, min_corr: f64) -> AxisPeriod {
-    let whole = AxisPeriod {
-        period: n as f32,
-        strength: 0.0,
-        repeated: false,
-    };
+    let whole = AxisPeriod { period: n as f32, strength: 0.0, repeated: false };
     if var <= 1e-12 || dmf.len() < 4 {
         return whole;
     }
@@ -168,28 +164,16 @@ pub fn period_from_dmf(dmf: &[f64], var: f64, n: usize, min_lag: f64, min_corr: 
         period = refine(d) / m as f64;
         m += 1;
     }
-    AxisPeriod {
-        period: period as f32,
-        strength: strength as f32,
-        repeated: true,
-    }
+    AxisPeriod { period: period as f32, strength: strength as f32, repeated: true }
 }
 
 /// Periods in x (from rows) and y (from columns) of a grey image. Lags up to 55% of the extent
 /// are searched, so an image needs about two repeats for a repeat to be detected.
-pub fn detect_period(
-    g: &Gray,
-    min_lag_x: f64,
-    min_lag_y: f64,
-    min_corr: f64,
-) -> (AxisPeriod, AxisPeriod) {
+pub fn detect_period(g: &Gray, min_lag_x: f64, min_lag_y: f64, min_corr: f64) -> (AxisPeriod, AxisPeriod) {
     let (dx, vx) = dmf_rows(g, (g.w as f64 * 0.55) as usize);
     let t = g.transposed();
     let (dy, vy) = dmf_rows(&t, (g.h as f64 * 0.55) as usize);
-    (
-        period_from_dmf(&dx, vx, g.w, min_lag_x, min_corr),
-        period_from_dmf(&dy, vy, g.h, min_lag_y, min_corr),
-    )
+    (period_from_dmf(&dx, vx, g.w, min_lag_x, min_corr), period_from_dmf(&dy, vy, g.h, min_lag_y, min_corr))
 }
 
 #[cfg(test)]
@@ -202,8 +186,7 @@ mod tests {
             for x in 0..w {
                 let t = x as f64 / period * 2.0 * std::f64::consts::PI;
                 // A non-sinusoidal profile with a sub-period harmonic.
-                g.data[y * w + x] =
-                    (t.sin() + 0.5 * (3.0 * t).cos() + 0.05 * y as f64 / h as f64) as f32;
+                g.data[y * w + x] = (t.sin() + 0.5 * (3.0 * t).cos() + 0.05 * y as f64 / h as f64) as f32;
             }
         }
         g
@@ -221,11 +204,7 @@ mod tests {
                 }
             }
             let direct = s / (g.h * (g.w - lag)) as f64;
-            assert!(
-                (d[lag] - direct).abs() < 1e-9,
-                "lag {lag}: {} vs {direct}",
-                d[lag]
-            );
+            assert!((d[lag] - direct).abs() < 1e-9, "lag {lag}: {} vs {direct}", d[lag]);
         }
     }
 

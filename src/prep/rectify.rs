@@ -21,7 +21,9 @@
 //!    measured with the same Radon energy on 5×5 overlapping discs (±8° around 0° and 90°). Each
 //!    measurement is a line through the disc centre. For each family a vanishing point is fitted with
 //!    RANSAC (exhaustive pairs of lines as hypotheses, inlier = angular residual < 0.6°), refined by
-//!    least squares (smallest eigenvector of Σ l lᵀ over the inliers). The homography sends the
+//!    least squares (smallest eigenvector of Σ l lᵀ over the inliers). A family needs valid
+//!    local directions in ≥ 60% of the discs and ≥ 60% of them as inliers; if the fitted vanishing
+//!    points predict a direction spread < 0.3° over the image, nothing is corrected. The homography sends the
 //!    vanishing line `v_weft × v_warp` to infinity (projective part) and then maps the two
 //!    (now affine) yarn directions onto the x and y axes (affine part). The output is cropped to the
 //!    largest axis-aligned rectangle inside the warped image. When too few tiles agree, or the
@@ -59,25 +61,16 @@ pub fn laplacian(g: &Gray) -> Gray {
     if w < 3 || h < 3 {
         return out;
     }
-    out.data
-        .par_chunks_mut(w)
-        .enumerate()
-        .skip(1)
-        .take(h - 2)
-        .for_each(|(y, row)| {
-            let up = &g.data[(y - 1) * w..y * w];
-            let mid = &g.data[y * w..(y + 1) * w];
-            let dn = &g.data[(y + 1) * w..(y + 2) * w];
-            for x in 1..w - 1 {
-                let s = up[x - 1]
-                    + up[x + 1]
-                    + dn[x - 1]
-                    + dn[x + 1]
-                    + 4.0 * (up[x] + dn[x] + mid[x - 1] + mid[x + 1])
-                    - 20.0 * mid[x];
-                row[x] = s / 6.0;
-            }
-        });
+    out.data.par_chunks_mut(w).enumerate().skip(1).take(h - 2).for_each(|(y, row)| {
+        let up = &g.data[(y - 1) * w..y * w];
+        let mid = &g.data[y * w..(y + 1) * w];
+        let dn = &g.data[(y + 1) * w..(y + 2) * w];
+        for x in 1..w - 1 {
+            let s = up[x - 1] + up[x + 1] + dn[x - 1] + dn[x + 1] + 4.0 * (up[x] + dn[x] + mid[x - 1] + mid[x + 1])
+                - 20.0 * mid[x];
+            row[x] = s / 6.0;
+        }
+    });
     out
 }
 
@@ -100,22 +93,36 @@ fn disc(lap: &Gray, cx: f64, cy: f64, radius: f64, max_pts: usize) -> Disc {
         for x in (x0..=x1).step_by(stride) {
             let (dx, dy) = (x as f64 - cx, y as f64 - cy);
             if dx * dx + dy * dy <= r2 {
-                pts.push([dx as f32, dy as f32, lap.at(x, y)]);
+                // Dither the sample inside its pixel footprint (deterministic hash). Without it
+                // the fractional bin offsets are all equal at 0° and 45° and vary at other
+                // angles, which biases the projection energy towards or away from the axes
+                // (depending on the disc centre's sub-pixel position).
+                let (jx, jy) = jitter(x, y);
+                pts.push([(dx + jx) as f32, (dy + jy) as f32, lap.at(x, y)]);
             }
         }
     }
-    Disc {
-        pts,
-        radius: radius as f32,
-    }
+    Disc { pts, radius: radius as f32 }
+}
+
+/// Deterministic pseudo-random offsets in [−0.5, 0.5)² for pixel `(x, y)`.
+#[inline]
+fn jitter(x: usize, y: usize) -> (f64, f64) {
+    let mut h = (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+    h ^= h >> 31;
+    h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    h ^= h >> 29;
+    let a = (h & 0xFFFF_FFFF) as f64 / 4_294_967_296.0 - 0.5;
+    let b = (h >> 32) as f64 / 4_294_967_296.0 - 0.5;
+    (a, b)
 }
 
 /// Radon projection energy for lines running along direction `angle` (radians).
 fn projection_energy(d: &Disc, angle: f64, bins: &mut Vec<f32>) -> f64 {
     let (sn, cs) = angle.sin_cos();
     let (sn, cs) = (sn as f32, cs as f32);
-    let off = d.radius.ceil() + 1.0;
-    let nb = 2 * off as usize + 3;
+    let off = d.radius.ceil() + 2.0;
+    let nb = 2 * off as usize + 4;
     bins.clear();
     bins.resize(nb, 0.0);
     for p in &d.pts {
@@ -149,17 +156,9 @@ fn search(d: &Disc, center: f64, half: f64, step: f64, both: bool) -> (f64, f64,
     let n = (2.0 * half / step).round() as usize + 1;
     let angles: Vec<f64> = (0..n).map(|i| center - half + i as f64 * step).collect();
     let s = scores(d, &angles, both);
-    let (k, &best) = s
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.total_cmp(b.1))
-        .expect("non-empty");
+    let (k, &best) = s.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("non-empty");
     let mean = s.iter().sum::<f64>() / n as f64;
-    let off = if k > 0 && k + 1 < n {
-        parabola_offset(s[k - 1], s[k], s[k + 1])
-    } else {
-        0.0
-    };
+    let off = if k > 0 && k + 1 < n { parabola_offset(s[k - 1], s[k], s[k + 1]) } else { 0.0 };
     let contrast = if mean > 0.0 { best / mean } else { 0.0 };
     (angles[k] + off * step, contrast, k, n)
 }
@@ -169,19 +168,11 @@ fn search(d: &Disc, center: f64, half: f64, step: f64, both: bool) -> (f64, f64,
 pub fn dominant_angle(g: &Gray) -> (f64, f32) {
     let (cx, cy) = ((g.w as f64 - 1.0) / 2.0, (g.h as f64 - 1.0) / 2.0);
     let r0 = (g.w.min(g.h) as f64 / 2.0 - 1.5).max(2.0);
-    let sigmas: Vec<f32> = [2.0f32, 4.0, 8.0]
-        .into_iter()
-        .filter(|&s| s == 2.0 || s <= g.w.min(g.h) as f32 / 24.0)
-        .collect();
-    let laps: Vec<Gray> = sigmas
-        .iter()
-        .map(|&s| laplacian(&blur_gray(g, s)))
-        .collect();
+    let sigmas: Vec<f32> =
+        [2.0f32, 4.0, 8.0].into_iter().filter(|&s| s == 2.0 || s <= g.w.min(g.h) as f32 / 24.0).collect();
+    let laps: Vec<Gray> = sigmas.iter().map(|&s| laplacian(&blur_gray(g, s))).collect();
     // Coarse: sum over scales of the Radon curves, each normalised by its mean.
-    let coarse: Vec<Disc> = laps
-        .iter()
-        .map(|l| disc(l, cx, cy, r0.min(128.0), 60_000))
-        .collect();
+    let coarse: Vec<Disc> = laps.iter().map(|l| disc(l, cx, cy, r0.min(128.0), 60_000)).collect();
     let angles: Vec<f64> = (0..180).map(|i| -45.0 + 0.5 * i as f64).collect();
     let mut total = vec![0.0f64; angles.len()];
     let mut best_sigma = (0.0f64, sigmas[0]);
@@ -197,28 +188,20 @@ pub fn dominant_angle(g: &Gray) -> (f64, f32) {
         }
         total.iter_mut().zip(&s).for_each(|(t, v)| *t += v / mean);
     }
-    let k = (0..total.len())
-        .max_by(|&a, &b| total[a].total_cmp(&total[b]))
-        .unwrap_or(0);
+    let k = (0..total.len()).max_by(|&a, &b| total[a].total_cmp(&total[b])).unwrap_or(0);
     let a0 = angles[k];
     // Fine: ±1° in 0.05° steps on the largest disc, same normalised sum, parabolic peak.
     let fine_angles: Vec<f64> = (0..=40).map(|i| a0 - 1.0 + 0.05 * i as f64).collect();
     let mut fine_total = vec![0.0f64; fine_angles.len()];
     for l in &laps {
-        let d = if r0 > 128.0 {
-            disc(l, cx, cy, r0, 200_000)
-        } else {
-            disc(l, cx, cy, r0, 60_000)
-        };
+        let d = if r0 > 128.0 { disc(l, cx, cy, r0, 200_000) } else { disc(l, cx, cy, r0, 60_000) };
         let s = scores(&d, &fine_angles, true);
         let m = s.iter().sum::<f64>() / s.len() as f64;
         if m > 0.0 {
             fine_total.iter_mut().zip(&s).for_each(|(t, v)| *t += v / m);
         }
     }
-    let k = (0..fine_total.len())
-        .max_by(|&a, &b| fine_total[a].total_cmp(&fine_total[b]))
-        .unwrap_or(0);
+    let k = (0..fine_total.len()).max_by(|&a, &b| fine_total[a].total_cmp(&fine_total[b])).unwrap_or(0);
     let off = if k > 0 && k + 1 < fine_total.len() {
         parabola_offset(fine_total[k - 1], fine_total[k], fine_total[k + 1])
     } else {
@@ -242,22 +225,13 @@ pub fn rotation_homography(angle_deg: f64, w: usize, h: usize) -> (Homography, u
     let t = angle_deg.to_radians();
     let (c, s) = (t.cos().abs(), t.sin().abs());
     let (wf, hf) = (w as f64 - 1.0, h as f64 - 1.0);
-    let k = (wf / (wf * c + hf * s))
-        .min(hf / (wf * s + hf * c))
-        .min(1.0);
+    let k = (wf / (wf * c + hf * s)).min(hf / (wf * s + hf * c)).min(1.0);
     let (ow, oh) = if angle_deg.abs() < 1e-9 {
         (w, h)
     } else {
-        (
-            ((k * wf).floor() as usize).max(1),
-            ((k * hf).floor() as usize).max(1),
-        )
+        (((k * wf).floor() as usize).max(1), ((k * hf).floor() as usize).max(1))
     };
-    let rot = [
-        [t.cos(), -t.sin(), 0.0],
-        [t.sin(), t.cos(), 0.0],
-        [0.0, 0.0, 1.0],
-    ];
+    let rot = [[t.cos(), -t.sin(), 0.0], [t.sin(), t.cos(), 0.0], [0.0, 0.0, 1.0]];
     let hm = mat3_mul(
         &mat3_mul(&translation(wf / 2.0, hf / 2.0), &rot),
         &translation(-(ow as f64 - 1.0) / 2.0, -(oh as f64 - 1.0) / 2.0),
@@ -274,11 +248,7 @@ struct LineObs {
 
 impl LineObs {
     fn line(&self) -> [f64; 3] {
-        [
-            -self.d[1],
-            self.d[0],
-            self.d[1] * self.c[0] - self.d[0] * self.c[1],
-        ]
+        [-self.d[1], self.d[0], self.d[1] * self.c[0] - self.d[0] * self.c[1]]
     }
     /// Sine of the angle between the observed direction and the direction towards `v`.
     fn residual(&self, v: &[f64; 3]) -> f64 {
@@ -327,7 +297,7 @@ fn ransac_vp(obs: &[LineObs], thr: f64) -> Option<[f64; 3]> {
         }
     }
     let (cnt, _, inl) = best?;
-    if cnt < 4 || cnt * 2 < n {
+    if cnt < 4 || (cnt as f64) < 0.6 * n as f64 {
         return None;
     }
     let mut s = [0.0f64; 9];
@@ -356,10 +326,7 @@ pub fn estimate_perspective(lap: &Gray) -> Option<(Homography, usize, usize)> {
             let (i, j) = (k % grid, k / grid);
             let fx = i as f64 / (grid - 1) as f64;
             let fy = j as f64 / (grid - 1) as f64;
-            (
-                rt + fx * (w - 1.0 - 2.0 * rt),
-                rt + fy * (h - 1.0 - 2.0 * rt),
-            )
+            (rt + fx * (w - 1.0 - 2.0 * rt), rt + fy * (h - 1.0 - 2.0 * rt))
         })
         .collect();
     let (cx, cy, sc) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0, m / 2.0);
@@ -376,30 +343,41 @@ pub fn estimate_perspective(lap: &Gray) -> Option<(Homography, usize, usize)> {
                 }
                 let (a, _, _, _) = search(&d, a, 0.6, 0.05, false);
                 let r = a.to_radians();
-                Some(LineObs {
-                    c,
-                    d: [r.cos(), r.sin()],
-                })
+                Some(LineObs { c, d: [r.cos(), r.sin()] })
             };
             (mk(0.0), mk(90.0))
         })
         .collect();
-    #[cfg(test)]
-    if std::env::var("PREP_DEBUG").is_ok() {
-        for o in &obs {
-            eprintln!(
-                "c {:?} weft {:?} warp {:?}",
-                o.0.map(|l| l.c),
-                o.0.map(|l| l.d[1].atan2(l.d[0]).to_degrees()),
-                o.1.map(|l| l.d[1].atan2(l.d[0]).to_degrees())
-            );
-        }
-    }
     let weft: Vec<LineObs> = obs.iter().filter_map(|o| o.0).collect();
     let warp: Vec<LineObs> = obs.iter().filter_map(|o| o.1).collect();
+    // Each family needs valid local directions in at least 60% of the discs.
+    let min_obs = (0.6 * (grid * grid) as f64).ceil() as usize;
+    if weft.len() < min_obs || warp.len() < min_obs {
+        return None;
+    }
     let thr = 0.6f64.to_radians().sin();
     let vh = ransac_vp(&weft, thr)?;
     let vv = ransac_vp(&warp, thr)?;
+    // Significance: if the fitted model predicts (nearly) parallel lines over the image, there is
+    // no perspective to remove.
+    let spread = |v: &[f64; 3]| -> f64 {
+        let angs: Vec<f64> = centres
+            .iter()
+            .map(|&(x, y)| {
+                let c = [(x - cx) / sc, (y - cy) / sc];
+                let d = [v[0] - v[2] * c[0], v[1] - v[2] * c[1]];
+                // Direction modulo 180°.
+                let a = d[1].atan2(d[0]).to_degrees();
+                (a - (a / 180.0).round() * 180.0).rem_euclid(180.0)
+            })
+            .collect();
+        let lo = angs.iter().cloned().fold(f64::MAX, f64::min);
+        let hi = angs.iter().cloned().fold(f64::MIN, f64::max);
+        (hi - lo).min(180.0 - (hi - lo))
+    };
+    if spread(&vh) < 0.3 && spread(&vv) < 0.3 {
+        return None;
+    }
     // Projective part: send the vanishing line to infinity.
     let l = cross3(vh, vv);
     if l[2].abs() < 1e-12 {
@@ -411,10 +389,8 @@ pub fn estimate_perspective(lap: &Gray) -> Option<(Homography, usize, usize)> {
     }
     let hp = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [l[0], l[1], 1.0]];
     let dir = |v: [f64; 3], axis: usize| -> Option<[f64; 2]> {
-        let p = [
-            hp[0][0] * v[0] + hp[0][1] * v[1] + hp[0][2] * v[2],
-            hp[1][0] * v[0] + hp[1][1] * v[1] + hp[1][2] * v[2],
-        ];
+        let p =
+            [hp[0][0] * v[0] + hp[0][1] * v[1] + hp[0][2] * v[2], hp[1][0] * v[0] + hp[1][1] * v[1] + hp[1][2] * v[2]];
         let n = (p[0] * p[0] + p[1] * p[1]).sqrt();
         if n < 1e-12 {
             return None;
@@ -429,24 +405,11 @@ pub fn estimate_perspective(lap: &Gray) -> Option<(Homography, usize, usize)> {
     if det.abs() < 0.5 {
         return None;
     }
-    let a = [
-        [dv[1] / det, -dv[0] / det, 0.0],
-        [-dh[1] / det, dh[0] / det, 0.0],
-        [0.0, 0.0, 1.0],
-    ];
-    let nrm = [
-        [1.0 / sc, 0.0, -cx / sc],
-        [0.0, 1.0 / sc, -cy / sc],
-        [0.0, 0.0, 1.0],
-    ];
+    let a = [[dv[1] / det, -dv[0] / det, 0.0], [-dh[1] / det, dh[0] / det, 0.0], [0.0, 0.0, 1.0]];
+    let nrm = [[1.0 / sc, 0.0, -cx / sc], [0.0, 1.0 / sc, -cy / sc], [0.0, 0.0, 1.0]];
     let nrm_inv = mat3_inv(&nrm)?;
     let f = mat3_mul(&nrm_inv, &mat3_mul(&mat3_mul(&a, &hp), &nrm));
-    let corners = [
-        (0.0, 0.0),
-        (w - 1.0, 0.0),
-        (0.0, h - 1.0),
-        (w - 1.0, h - 1.0),
-    ];
+    let corners = [(0.0, 0.0), (w - 1.0, 0.0), (0.0, h - 1.0), (w - 1.0, h - 1.0)];
     let pc: Vec<(f64, f64)> = corners.iter().map(|&(x, y)| apply(&f, x, y)).collect();
     let x0 = pc[0].0.max(pc[2].0);
     let x1 = pc[1].0.min(pc[3].0);
@@ -455,10 +418,7 @@ pub fn estimate_perspective(lap: &Gray) -> Option<(Homography, usize, usize)> {
     if !(x1 - x0 > 0.6 * w && y1 - y0 > 0.6 * h) {
         return None;
     }
-    let (ow, oh) = (
-        (x1 - x0.ceil()).floor() as usize,
-        (y1 - y0.ceil()).floor() as usize,
-    );
+    let (ow, oh) = ((x1 - x0.ceil()).floor() as usize, (y1 - y0.ceil()).floor() as usize);
     let g = mat3_mul(&mat3_inv(&f)?, &translation(x0.ceil(), y0.ceil()));
     Some((g, ow, oh))
 }
@@ -484,10 +444,5 @@ pub fn rectify(img: &Rgb32FImage, perspective: bool) -> Rectified {
         }
     }
     let image = warp_rgb(img, &hm, ow, oh);
-    Rectified {
-        image,
-        angle_deg: angle as f32,
-        homography: hm,
-        perspective_applied: applied,
-    }
+    Rectified { image, angle_deg: angle as f32, homography: hm, perspective_applied: applied }
 }

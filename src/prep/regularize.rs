@@ -12,9 +12,11 @@
 //! * Training set: up to `max_train` tiles, evenly spread over the lattice.
 //! * RBF kernel `k(a, b) = exp(−‖a − b‖² / c)` with `c` = median squared distance between training
 //!   tiles (the usual median heuristic: irregular tiles are far from the bulk, typical ones near).
-//! * Centred kernel matrix, leading `q` eigenpairs by subspace (block power) iteration with a
-//!   Rayleigh–Ritz step (Jacobi on the q×q matrix); coefficient vectors scaled so that the feature
-//!   space eigenvectors have unit norm.
+//! * Centred kernel matrix, leading `q` (default 4) eigenpairs by subspace (block power)
+//!   iteration with a Rayleigh–Ritz step (Jacobi on the q×q matrix); coefficient vectors scaled so
+//!   that the feature space eigenvectors have unit norm. Only components holding ≥ 10% of the
+//!   kernel variance (trace) are kept: with pure noise between repeats all eigenvalues are ~1/m of
+//!   the trace and none is kept, so every tile goes to the kernel-weighted mean of the repeats.
 //! * Every tile is projected on the `q` components (`β_k = Σ_i α_i^k k̃(x, x_i)`) and its
 //!   projection is written as `Σ_i γ_i φ(x_i)` (Kwok & Tsang 2004, incl. the centring term).
 //! * Pre-image by the fixed-point iteration of Mika et al. (1999):
@@ -42,26 +44,18 @@ pub struct KpcaParams {
     pub max_train: usize,
     /// Pre-image fixed-point iterations.
     pub iters: usize,
+    /// A component is kept only if its eigenvalue is at least this share of the trace.
+    pub min_share: f64,
 }
 
 impl Default for KpcaParams {
     fn default() -> Self {
-        Self {
-            components: 4,
-            max_train: 160,
-            iters: 3,
-        }
+        Self { components: 4, max_train: 160, iters: 3, min_share: 0.1 }
     }
 }
 
 /// Blur (σ = pitch/16) followed by KPCA on period tiles. See module docs.
-pub fn regularize(
-    img: &Rgb32FImage,
-    pitch: f32,
-    period_x: f32,
-    period_y: f32,
-    params: &KpcaParams,
-) -> Rgb32FImage {
+pub fn regularize(img: &Rgb32FImage, pitch: f32, period_x: f32, period_y: f32, params: &KpcaParams) -> Rgb32FImage {
     let blurred = blur_rgb(img, pitch / 16.0);
     kpca_tiles(&blurred, period_x, period_y, params)
 }
@@ -96,12 +90,7 @@ fn lattice(n: usize, p: f32) -> (usize, Vec<usize>) {
 }
 
 /// KPCA regularization of an (already blurred) image on tiles of the given period.
-pub fn kpca_tiles(
-    img: &Rgb32FImage,
-    period_x: f32,
-    period_y: f32,
-    params: &KpcaParams,
-) -> Rgb32FImage {
+pub fn kpca_tiles(img: &Rgb32FImage, period_x: f32, period_y: f32, params: &KpcaParams) -> Rgb32FImage {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let (tw, xs) = lattice(w, period_x.max(1.0));
     let (th, ys) = lattice(h, period_y.max(1.0));
@@ -154,10 +143,7 @@ pub fn kpca_tiles(
             }
         })
         .collect();
-    let mut off: Vec<f32> = (0..m)
-        .flat_map(|i| (i + 1..m).map(move |j| (i, j)))
-        .map(|(i, j)| d2[i * m + j])
-        .collect();
+    let mut off: Vec<f32> = (0..m).flat_map(|i| (i + 1..m).map(move |j| (i, j))).map(|(i, j)| d2[i * m + j]).collect();
     let mid = off.len() / 2;
     off.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
     let c = off[mid] as f64;
@@ -173,9 +159,7 @@ pub fn kpca_tiles(
             k[j * m + i] = v;
         }
     }
-    let col_mean: Vec<f64> = (0..m)
-        .map(|j| (0..m).map(|i| k[i * m + j]).sum::<f64>() / m as f64)
-        .collect();
+    let col_mean: Vec<f64> = (0..m).map(|j| (0..m).map(|i| k[i * m + j]).sum::<f64>() / m as f64).collect();
     let all_mean = col_mean.iter().sum::<f64>() / m as f64;
     let mut kc = k.clone();
     for i in 0..m {
@@ -183,20 +167,23 @@ pub fn kpca_tiles(
             kc[i * m + j] = k[i * m + j] - col_mean[i] - col_mean[j] + all_mean;
         }
     }
-    let alphas = top_eigen(&kc, m, params.components.min(m - 1).max(1));
+    // Keep only components that carry a real share (≥ 10%) of the kernel variance: with
+    // i.i.d. noise every eigenvalue is ~1/m of the trace and projecting on noise directions would
+    // re-inject noise; structured variation across repeats (e.g. uneven light) passes the test.
+    let trace: f64 = (0..m).map(|i| kc[i * m + i]).sum();
+    let alphas: Vec<Vec<f64>> = top_eigen(&kc, m, params.components.min(m - 1).max(1))
+        .into_iter()
+        .filter(|(l, _)| *l >= params.min_share * trace)
+        .map(|(_, a)| a)
+        .collect();
     // Project every tile, pre-image, reconstruct.
     let tiles: Vec<Vec<f32>> = (0..n_tiles)
         .into_par_iter()
         .map(|t| {
             let x = &feats[t];
-            let kx: Vec<f64> = train
-                .iter()
-                .map(|&i| (-(dist2(x, &feats[i]) as f64) / c).exp())
-                .collect();
+            let kx: Vec<f64> = train.iter().map(|&i| (-(dist2(x, &feats[i]) as f64) / c).exp()).collect();
             let kx_mean = kx.iter().sum::<f64>() / m as f64;
-            let kxc: Vec<f64> = (0..m)
-                .map(|i| kx[i] - kx_mean - col_mean[i] + all_mean)
-                .collect();
+            let kxc: Vec<f64> = (0..m).map(|i| kx[i] - kx_mean - col_mean[i] + all_mean).collect();
             let mut gamma = vec![0.0f64; m];
             for a in &alphas {
                 let beta: f64 = a.iter().zip(&kxc).map(|(u, v)| u * v).sum();
@@ -274,25 +261,13 @@ pub fn kpca_tiles(
 
 /// Leading `q` eigenvectors of the symmetric PSD `m×m` matrix `a`, each scaled by `1/sqrt(λ)`
 /// (KPCA normalisation); eigenpairs with negligible eigenvalue are dropped.
-fn top_eigen(a: &[f64], m: usize, q: usize) -> Vec<Vec<f64>> {
+fn top_eigen(a: &[f64], m: usize, q: usize) -> Vec<(f64, Vec<f64>)> {
     // Deterministic start, subspace iteration with modified Gram–Schmidt.
     let mut qm: Vec<Vec<f64>> = (0..q)
-        .map(|k| {
-            (0..m)
-                .map(|i| ((i * (k + 1)) as f64 * 0.618_034 + k as f64 * 0.37).sin() + 0.01)
-                .collect()
-        })
+        .map(|k| (0..m).map(|i| ((i * (k + 1)) as f64 * 0.618_034 + k as f64 * 0.37).sin() + 0.01).collect())
         .collect();
     let matvec = |v: &[f64]| -> Vec<f64> {
-        (0..m)
-            .map(|i| {
-                a[i * m..(i + 1) * m]
-                    .iter()
-                    .zip(v)
-                    .map(|(x, y)| x * y)
-                    .sum()
-            })
-            .collect()
+        (0..m).map(|i| a[i * m..(i + 1) * m].iter().zip(v).map(|(x, y)| x * y).sum()).collect()
     };
     let orth = |vs: &mut Vec<Vec<f64>>| {
         for k in 0..vs.len() {
@@ -331,7 +306,7 @@ fn top_eigen(a: &[f64], m: usize, q: usize) -> Vec<Vec<f64>> {
             }
             let s = 1.0 / l.sqrt();
             v.iter_mut().for_each(|x| *x *= s);
-            v
+            (*l, v)
         })
         .collect()
 }

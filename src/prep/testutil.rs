@@ -14,25 +14,13 @@ pub fn plain() -> Vec<Vec<u8>> {
     vec![vec![1, 0], vec![0, 1]]
 }
 pub fn basket2() -> Vec<Vec<u8>> {
-    vec![
-        vec![1, 1, 0, 0],
-        vec![1, 1, 0, 0],
-        vec![0, 0, 1, 1],
-        vec![0, 0, 1, 1],
-    ]
+    vec![vec![1, 1, 0, 0], vec![1, 1, 0, 0], vec![0, 0, 1, 1], vec![0, 0, 1, 1]]
 }
 pub fn twill22() -> Vec<Vec<u8>> {
-    vec![
-        vec![1, 1, 0, 0],
-        vec![0, 1, 1, 0],
-        vec![0, 0, 1, 1],
-        vec![1, 0, 0, 1],
-    ]
+    vec![vec![1, 1, 0, 0], vec![0, 1, 1, 0], vec![0, 0, 1, 1], vec![1, 0, 0, 1]]
 }
 pub fn satin5() -> Vec<Vec<u8>> {
-    (0..5)
-        .map(|i| (0..5).map(|j| u8::from(j != (2 * i) % 5)).collect())
-        .collect()
+    (0..5).map(|i| (0..5).map(|j| u8::from(j != (2 * i) % 5)).collect()).collect()
 }
 
 /// Linear RGB of the weave at texture coordinates (in pitches).
@@ -41,11 +29,7 @@ pub fn texture(p: &[Vec<u8>], tx: f64, ty: f64) -> [f32; 3] {
     let (ci, cj) = (ty.floor() as i64, tx.floor() as i64);
     let (fx, fy) = (tx - tx.floor(), ty - ty.floor());
     let weft_over = p[ci.rem_euclid(ne) as usize][cj.rem_euclid(na) as usize] == 1;
-    let (across, colour) = if weft_over {
-        (fy - 0.5, [0.85f32, 0.6, 0.35])
-    } else {
-        (fx - 0.5, [0.35f32, 0.55, 0.85])
-    };
+    let (across, colour) = if weft_over { (fy - 0.5, [0.85f32, 0.6, 0.35]) } else { (fx - 0.5, [0.35f32, 0.55, 0.85]) };
     let half = 0.44;
     if across.abs() > half {
         return [0.03, 0.03, 0.03];
@@ -56,13 +40,7 @@ pub fn texture(p: &[Vec<u8>], tx: f64, ty: f64) -> [f32; 3] {
 
 /// Renders a `w × h` image; `map(x, y)` gives the texture coordinates (in pixels of the flat
 /// cloth) of image point `(x, y)`; the pitch converts them to yarn units.
-pub fn render(
-    p: &[Vec<u8>],
-    pitch: f64,
-    w: u32,
-    h: u32,
-    map: impl Fn(f64, f64) -> (f64, f64),
-) -> Rgb32FImage {
+pub fn render(p: &[Vec<u8>], pitch: f64, w: u32, h: u32, map: impl Fn(f64, f64) -> (f64, f64)) -> Rgb32FImage {
     let mut img = Rgb32FImage::new(w, h);
     let offs = [-1.0 / 3.0, 0.0, 1.0 / 3.0];
     for (x, y, px) in img.enumerate_pixels_mut() {
@@ -93,10 +71,7 @@ pub fn render_rotated(p: &[Vec<u8>], pitch: f64, w: u32, h: u32, a_deg: f64) -> 
     render(p, pitch, w, h, move |x, y| {
         let (dx, dy) = (x - cx, y - cy);
         // Inverse rotation: texture = R(-a) (q - c).
-        (
-            c * dx + s * dy + 1000.0 * pitch,
-            -s * dx + c * dy + 1000.0 * pitch,
-        )
+        (c * dx + s * dy + 1000.0 * pitch, -s * dx + c * dy + 1000.0 * pitch)
     })
 }
 
@@ -109,12 +84,7 @@ pub fn add_noise(img: &Rgb32FImage, sigma: f32, seed: u64) -> Rgb32FImage {
 }
 
 pub fn psnr(a: &Rgb32FImage, b: &Rgb32FImage) -> f64 {
-    let mse = a
-        .as_raw()
-        .iter()
-        .zip(b.as_raw())
-        .map(|(x, y)| ((x - y) as f64).powi(2))
-        .sum::<f64>()
-        / a.as_raw().len() as f64;
+    let mse =
+        a.as_raw().iter().zip(b.as_raw()).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / a.as_raw().len() as f64;
     10.0 * (1.0 / mse).log10()
 }

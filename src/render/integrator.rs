@@ -51,6 +51,8 @@ pub struct PathVertex {
     pub lights: (u32, u32),
     /// Sampled refraction leaving this vertex: local direction and its pdf under θ₀.
     pub refr: Option<(Vec3, f32)>,
+    /// Russian-roulette weight `1/q` applied after the refraction (1 if no roulette).
+    pub rr: f32,
 }
 
 /// A recorded path sample: escaped radiance plus vertices.
@@ -232,6 +234,7 @@ impl Tracer<'_> {
                 n_i: 0,
                 lights,
                 refr: None,
+                rr: 1.0,
             };
             if !self.transmission || buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vx);
@@ -275,6 +278,7 @@ impl Tracer<'_> {
                 n_i: py.crossed.max(1),
                 lights,
                 refr: None,
+                rr: 1.0,
             };
             if buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vyx);
@@ -290,7 +294,15 @@ impl Tracer<'_> {
                 buf.verts.push(vyx);
                 return;
             }
+            // Russian roulette past the first yarn: light that crossed a whole yarn is attenuated by
+            // τ(A^B)^{N_i} (θ₀), so continue with that probability (floored) and weight 1/q.
+            let q = (-self.sampling.a_b * chord * vyx.n_i as f32).exp().clamp(0.1, 1.0);
+            if rng.random::<f32>() >= q {
+                buf.verts.push(vyx);
+                return;
+            }
             vyx.refr = Some((ol, pdf));
+            vyx.rr = 1.0 / q;
             buf.verts.push(vyx);
             ray_o = yw + ny * EPS;
             ray_d = ow;

@@ -39,7 +39,7 @@ pub fn shade_path<T: Real>(
             };
             let w = transmit_cos(vx.v, l, alpha, eta) * (1.0 / pdf);
             for k in 0..3 {
-                thr[k] *= col[k] * w;
+                thr[k] *= col[k] * w * vx.rr;
             }
         } else {
             break;

@@ -187,6 +187,66 @@ pub fn sample_transmission(v: Vec3, alpha: f32, eta: f32, u1: f32, u2: f32) -> O
     Some((if flip { -l } else { l }, pdf))
 }
 
+/// Sample a reflected direction for `v` (either side) by visible normals; returns `(l, pdf(l))`.
+pub fn sample_reflection(v: Vec3, alpha: f32, u1: f32, u2: f32) -> Option<(Vec3, f32)> {
+    let alpha = alpha.clamp(ALPHA_MIN, 1.0);
+    let flip = v.z < 0.0;
+    let vl = if flip { -v } else { v };
+    if vl.z < 1e-7 {
+        return None;
+    }
+    let h = sample_vndf(vl, alpha, u1, u2);
+    let vh = vl.dot(h);
+    if vh <= 0.0 {
+        return None;
+    }
+    let l = h * (2.0 * vh) - vl;
+    if l.z <= 0.0 {
+        return None;
+    }
+    let pdf = smith_g1(vl, h, alpha) * ndf(h, alpha) / (4.0 * vl.z);
+    (pdf.is_finite() && pdf > 0.0).then_some((if flip { -l } else { l }, pdf))
+}
+
+/// Pdf of [`sample_reflection`] for a given pair.
+pub fn reflection_pdf(v: Vec3, l: Vec3, alpha: f32) -> f32 {
+    if v.z * l.z <= 0.0 {
+        return 0.0;
+    }
+    let alpha = alpha.clamp(ALPHA_MIN, 1.0);
+    let (vl, ll) = if v.z < 0.0 { (-v, -l) } else { (v, l) };
+    let h = (vl + ll).normalize_or_zero();
+    if h.z <= 0.0 {
+        return 0.0;
+    }
+    smith_g1(vl, h, alpha) * ndf(h, alpha) / (4.0 * vl.z)
+}
+
+/// Pdf of [`sample_transmission`] for a given pair.
+pub fn transmission_pdf(v: Vec3, l: Vec3, alpha: f32, eta: f32) -> f32 {
+    if v.z * l.z >= 0.0 {
+        return 0.0;
+    }
+    let alpha = alpha.clamp(ALPHA_MIN, 1.0);
+    let (vl, ll, eta_v, eta_l) = if v.z < 0.0 { (-v, -l, eta, 1.0) } else { (v, l, 1.0, eta) };
+    let mut h = -(vl * eta_v + ll * eta_l);
+    let len = h.length();
+    if len < 1e-9 {
+        return 0.0;
+    }
+    h /= len;
+    if h.z < 0.0 {
+        h = -h;
+    }
+    let ci = vl.dot(h);
+    let lh = ll.dot(h);
+    if ci <= 0.0 || lh >= 0.0 {
+        return 0.0;
+    }
+    let pdf_h = smith_g1(vl, h, alpha) * ci * ndf(h, alpha) / vl.z;
+    pdf_h * eta_l * eta_l * lh.abs() / (eta_v * ci + eta_l * lh).powi(2)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
