@@ -173,3 +173,46 @@ pub fn vstack(images: &[&Image], gap: u32) -> Image {
     }
     Image::new(w, h, data)
 }
+
+/// `woven prep`: rectify, regularize, find the yarn grid and minimum pattern; write the images and
+/// `prep.json` into `out`.
+pub fn prep(image: &Path, out: &Path, no_perspective: bool) -> Result<crate::prep::Prepared> {
+    let img = Image::load(image, crate::prep::MIN_SIZE)?;
+    let t0 = std::time::Instant::now();
+    let opts = crate::prep::PrepOptions { perspective: !no_perspective, ..Default::default() };
+    let p = crate::prep::prepare(&img.to_rgb32f(), &opts).with_context(|| format!("preparing {}", image.display()))?;
+    let secs = t0.elapsed().as_secs_f64();
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    Image::from_rgb32f(&p.rectified).save_png(&out.join("rectified.png"))?;
+    let reg = Image::from_rgb32f(&p.regularized);
+    reg.save_png(&out.join("regularized.png"))?;
+    Image::from_rgb32f(&p.grid_overlay()).save_png(&out.join("grid.png"))?;
+    crop(&reg, p.crop.x, p.crop.y, p.crop.w, p.crop.h).save_png(&out.join("crop.png"))?;
+    crate::io::write_atomic(&out.join("prep.json"), p.to_json().as_bytes())?;
+    println!(
+        "{}: angle {:.2}°, pitch {:.1}×{:.1} px, period {:.1}×{:.1} px, n_e×n_a = {}×{}, crop {}×{} at ({}, {}) in {:.2} s -> {}",
+        image.display(),
+        p.angle_deg,
+        p.pitch_x,
+        p.pitch_y,
+        p.period_x,
+        p.period_y,
+        p.n_e,
+        p.n_a,
+        p.crop.w,
+        p.crop.h,
+        p.crop.x,
+        p.crop.y,
+        secs,
+        out.display()
+    );
+    Ok(p)
+}
+
+/// Cut a window out of an image (clamped to its bounds).
+pub fn crop(img: &Image, x: u32, y: u32, w: u32, h: u32) -> Image {
+    let w = w.min(img.width.saturating_sub(x)).max(1);
+    let h = h.min(img.height.saturating_sub(y)).max(1);
+    let data = (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| img.get((x + i).min(img.width - 1), (y + j).min(img.height - 1))).collect();
+    Image::new(w, h, data)
+}

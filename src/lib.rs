@@ -23,3 +23,7 @@ pub mod bench;
 pub mod cli;
 pub mod net;
 pub mod stress;
+pub mod prep;
+pub mod datagen;
+pub mod fit;
+pub mod pre;

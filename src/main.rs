@@ -78,6 +78,21 @@ enum Cmd {
         #[arg(long, default_value_t = 16)]
         spp: u32,
     },
+    /// Prepare a photo: rectify, regularize, find the yarn grid and the minimum pattern.
+    Prep {
+        /// Photo (PNG, JPEG or EXR).
+        image: PathBuf,
+        /// Output folder (rectified.png, regularized.png, grid.png, crop.png, prep.json).
+        #[arg(long)]
+        out: PathBuf,
+        /// Skip the perspective (tilt) correction.
+        #[arg(long)]
+        no_perspective: bool,
+    },
+    /// Train the pre-estimator network on a dataset from `woven generate`.
+    Train(woven::pre::TrainArgs),
+    /// Predict pattern class and parameters of an image with the pre-estimator.
+    Predict(woven::pre::PredictArgs),
     /// Forward-model benchmark: time vs error, threads, re-shading, skips. Writes markdown.
     Bench {
         /// Markdown output (appends/replaces the forward-model section).
@@ -114,6 +129,9 @@ fn main() -> Result<()> {
                 .with_context(|| format!("rendering {}", params.display()))
         }
         Cmd::Demo { out, size, spp } => cli::demo(&out, size, spp),
+        Cmd::Prep { image, out, no_perspective } => cli::prep(&image, &out, no_perspective).map(|_| ()),
+        Cmd::Train(a) => woven::pre::run_train(&a),
+        Cmd::Predict(a) => woven::pre::run_predict(&a),
         Cmd::Bench { out, quick } => woven::bench::run(&out, quick),
         Cmd::Stress { count, out, seed } => woven::stress::run(count, seed, &out),
     }

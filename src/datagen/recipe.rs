@@ -262,8 +262,14 @@ fn check_span(field: &str, s: &Span, min: f64, max: f64) -> Result<()> {
     if lo > hi {
         bail!("recipe field `{field}.range`: lower bound {lo} is above upper bound {hi}");
     }
-    if lo < min || hi > max {
-        bail!("recipe field `{field}.range`: [{lo}, {hi}] is outside the allowed range [{min}, {max}]");
+    // Table-1 bounds are f32: allow their rounding (0.2f32 is 0.2000000029…).
+    let tol = 1e-6 * min.abs().max(max.abs()).max(1.0);
+    if lo < min - tol || hi > max + tol {
+        bail!(
+            "recipe field `{field}.range`: [{lo}, {hi}] is outside the allowed range [{}, {}]",
+            min as f32,
+            max as f32
+        );
     }
     if s.dist == Dist::Loguniform && lo <= 0.0 {
         bail!("recipe field `{field}.dist`: loguniform needs a positive lower bound (range starts at {lo})");
@@ -324,7 +330,8 @@ impl Priors {
     /// The prior of `name` resolved to a [`Span`] (full Table-1 range when no range is given).
     pub fn span(&self, name: &str) -> Span {
         let (_, p, a, b, _) = self.entries().into_iter().find(|e| e.0 == name).expect("known parameter name");
-        Span { range: p.range.unwrap_or([a, b]), dist: p.dist }
+        // Through f32, like the Table-1 bounds, so `[1.4, 1.6]` written out equals the default.
+        Span { range: p.range.unwrap_or([a, b]).map(|v| v as f32 as f64), dist: p.dist }
     }
 }
 
@@ -339,8 +346,7 @@ impl Recipe {
 
     /// Read, parse and validate a recipe file.
     pub fn load(path: &Path) -> Result<Self> {
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("cannot read recipe {}", path.display()))?;
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read recipe {}", path.display()))?;
         Self::from_str(&text).with_context(|| format!("in recipe {}", path.display()))
     }
 

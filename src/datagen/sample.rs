@@ -167,11 +167,8 @@ impl Recipe {
         let tilt_deg = draw_f32(&mut rng, &c.tilt_deg);
         let perspective = rng.random_bool(c.perspective_share.clamp(0.0, 1.0));
         let fov_deg = draw_f32(&mut rng, &c.fov_deg);
-        let offset = if c.random_offset {
-            [rng.random_range(0.0f32..1.0), rng.random_range(0.0f32..1.0)]
-        } else {
-            [0.0, 0.0]
-        };
+        let offset =
+            if c.random_offset { [rng.random_range(0.0f32..1.0), rng.random_range(0.0f32..1.0)] } else { [0.0, 0.0] };
         let camera = CameraSpec {
             projection: if perspective { Projection::Perspective } else { Projection::Orthographic },
             tiles,
@@ -199,8 +196,7 @@ impl Recipe {
             irradiance: grey(e),
             cone_deg: cone,
         };
-        let mut lights =
-            vec![light("front", dir, front, 0.0), light("left", [-1.0, 0.2, 0.55], left, 0.0)];
+        let mut lights = vec![light("front", dir, front, 0.0), light("left", [-1.0, 0.2, 0.55], left, 0.0)];
         lights.push(light("right", [1.0, -0.2, 0.55], right, 0.0));
         if back_on {
             lights.push(light("back", [0.0, 0.0, -1.0], back, l.back_cone_deg as f32));

@@ -1,0 +1,130 @@
+//! `woven generate`: command-line arguments and the entry point.
+
+use super::generate::{generate, GenerateOptions, Interrupted};
+use super::recipe::{Recipe, DEFAULT_RECIPE};
+use anyhow::{bail, Context, Result};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
+
+/// Arguments of `woven generate`.
+#[derive(clap::Args, Clone, Debug)]
+pub struct GenerateArgs {
+    /// Number of images (default: the recipe's `count`).
+    #[arg(long)]
+    pub count: Option<usize>,
+    /// Output directory (created; a rerun resumes, a larger --count extends).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Recipe file.
+    #[arg(long, default_value = DEFAULT_RECIPE)]
+    pub recipe: PathBuf,
+    /// Image side in pixels (default: the recipe's `image.size`).
+    #[arg(long)]
+    pub size: Option<u32>,
+    /// Dataset seed (default: the recipe's `seed`).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Render only indices ≡ i (mod K), e.g. `--shard 0/4`.
+    #[arg(long, value_parser = parse_shard)]
+    pub shard: Option<(usize, usize)>,
+    /// Also write linear EXR images.
+    #[arg(long)]
+    pub exr: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+/// Parse `i/K` with `0 <= i < K`.
+pub fn parse_shard(s: &str) -> Result<(usize, usize), String> {
+    let (a, b) = s.split_once('/').ok_or_else(|| format!("shard `{s}`: expected i/K, e.g. 0/4"))?;
+    let i: usize = a.trim().parse().map_err(|_| format!("shard `{s}`: i is not a number"))?;
+    let k: usize = b.trim().parse().map_err(|_| format!("shard `{s}`: K is not a number"))?;
+    if k == 0 || i >= k {
+        return Err(format!("shard `{s}`: need 0 <= i < K"));
+    }
+    Ok((i, k))
+}
+
+fn cancel_flag() -> Arc<AtomicBool> {
+    static FLAG: OnceLock<Arc<AtomicBool>> = OnceLock::new();
+    FLAG.get_or_init(|| {
+        let flag = Arc::new(AtomicBool::new(false));
+        let f = flag.clone();
+        let res = ctrlc::set_handler(move || {
+            if f.swap(true, Ordering::SeqCst) {
+                eprintln!("\ngenerate: second interrupt, exiting now (finished images are kept; rerun to resume)");
+                std::process::exit(130);
+            }
+            eprintln!("\ngenerate: interrupt received; finishing the images in flight (Ctrl-C again to quit now)");
+        });
+        if let Err(e) = res {
+            eprintln!("generate: warning: cannot install the Ctrl-C handler: {e}");
+        }
+        flag
+    })
+    .clone()
+}
+
+fn resume_command(args: &GenerateArgs) -> String {
+    let mut c = format!("woven generate --out {} --recipe {}", args.out.display(), args.recipe.display());
+    if let Some(n) = args.count {
+        c += &format!(" --count {n}");
+    }
+    if let Some(s) = args.size {
+        c += &format!(" --size {s}");
+    }
+    if let Some(s) = args.seed {
+        c += &format!(" --seed {s}");
+    }
+    if let Some((i, k)) = args.shard {
+        c += &format!(" --shard {i}/{k}");
+    }
+    if args.exr {
+        c += " --exr";
+    }
+    c
+}
+
+/// Run `woven generate`.
+pub fn run(args: &GenerateArgs) -> Result<()> {
+    let recipe = Recipe::load(&args.recipe)?;
+    let mut opts = GenerateOptions::new(&args.out, recipe);
+    opts.count = args.count;
+    opts.size = args.size;
+    opts.seed = args.seed;
+    opts.shard = args.shard.unwrap_or((0, 1));
+    opts.exr = args.exr;
+    opts.threads = args.threads;
+    opts.progress = true;
+    opts.cancel = Some(cancel_flag());
+    match generate(&opts) {
+        Ok(s) => {
+            eprintln!(
+                "generate: rendered {}, skipped {} (already done), {} of {} present, wall {:.1} s, {:.2} images/s",
+                s.rendered, s.skipped, s.present, s.count, s.wall_s, s.images_per_s
+            );
+            if s.complete {
+                eprintln!("generate: complete: {} (labels.jsonl, manifest.json, preview.png)", args.out.display());
+            } else {
+                eprintln!(
+                    "generate: shard done; labels.jsonl/manifest.json/preview.png are written once all {} images are present (rerun without --shard to finish or check)",
+                    s.count
+                );
+            }
+            Ok(())
+        }
+        Err(e) => {
+            if let Some(i) = e.downcast_ref::<Interrupted>() {
+                bail!(
+                    "interrupted: rendered {} images, {} remain; the directory is consistent. Resume with:\n  {}",
+                    i.rendered,
+                    i.remaining,
+                    resume_command(args)
+                );
+            }
+            Err(e).context("generate failed")
+        }
+    }
+}

@@ -1,0 +1,108 @@
+//! The optimizer's building blocks: annealing schedule, Metropolis rule, barrier, Adam.
+
+use crate::params::{ParamRange, APPEARANCE_RANGES, N_APPEARANCE, RADIUS_RANGE};
+use rand::{Rng, RngExt};
+
+/// Initial annealing temperature (paper §6.2).
+pub const T0: f64 = 100.0;
+/// Multiplicative temperature decay per iteration (paper §6.2).
+pub const DECAY: f64 = 0.98;
+/// Barrier weight λ (paper eq. 5, pipeline §5).
+pub const BARRIER_LAMBDA: f32 = 0.01;
+
+/// Temperature at iteration `k`: `t0 · decay^k`.
+pub fn temperature(t0: f64, decay: f64, k: usize) -> f64 {
+    t0 * decay.powi(k as i32)
+}
+
+/// Metropolis acceptance probability of an energy change `delta` at temperature `t`:
+/// 1 for downhill (or equal) moves, `exp(−Δ/T)` uphill, 0 uphill at `T = 0`.
+pub fn acceptance_probability(delta: f64, t: f64) -> f64 {
+    if delta <= 0.0 {
+        1.0
+    } else if t <= 0.0 || !delta.is_finite() {
+        0.0
+    } else {
+        (-delta / t).exp()
+    }
+}
+
+/// Metropolis rule: always accept downhill; accept uphill with probability `exp(−Δ/T)`.
+/// Draws one uniform number only for uphill moves.
+pub fn metropolis_accept<R: Rng + ?Sized>(delta: f64, t: f64, rng: &mut R) -> bool {
+    if delta <= 0.0 {
+        return true;
+    }
+    let p = acceptance_probability(delta, t);
+    p > 0.0 && rng.random::<f64>() < p
+}
+
+/// Barrier of one scalar: `λ·(max(0, x − b)² + max(0, a − x)²)` — zero inside `[a, b]`.
+pub fn barrier(x: f32, a: f32, b: f32, lambda: f32) -> f32 {
+    let hi = (x - b).max(0.0);
+    let lo = (a - x).max(0.0);
+    lambda * (hi * hi + lo * lo)
+}
+
+/// Derivative of [`barrier`] with respect to `x`.
+pub fn barrier_grad(x: f32, a: f32, b: f32, lambda: f32) -> f32 {
+    let hi = (x - b).max(0.0);
+    let lo = (a - x).max(0.0);
+    2.0 * lambda * (hi - lo)
+}
+
+/// Ranges of the optimizer's continuous vector: 30 appearance scalars, then `r_e`, `r_a`.
+pub fn continuous_ranges() -> Vec<ParamRange> {
+    let mut v: Vec<ParamRange> = APPEARANCE_RANGES.to_vec();
+    v.push(ParamRange { name: "r_e", min: RADIUS_RANGE.0, max: RADIUS_RANGE.1 });
+    v.push(ParamRange { name: "r_a", min: RADIUS_RANGE.0, max: RADIUS_RANGE.1 });
+    v
+}
+
+/// Total barrier of the appearance vector and its gradient.
+pub fn appearance_barrier(x: &[f32; N_APPEARANCE]) -> (f32, [f32; N_APPEARANCE]) {
+    let mut g = [0.0; N_APPEARANCE];
+    let mut l = 0.0;
+    for (k, r) in APPEARANCE_RANGES.iter().enumerate() {
+        l += barrier(x[k], r.min, r.max, BARRIER_LAMBDA);
+        g[k] = barrier_grad(x[k], r.min, r.max, BARRIER_LAMBDA);
+    }
+    (l, g)
+}
+
+/// Adam with a per-coordinate step size.
+#[derive(Clone, Debug)]
+pub struct Adam {
+    m: Vec<f32>,
+    v: Vec<f32>,
+    t: i32,
+    /// β1.
+    pub beta1: f32,
+    /// β2.
+    pub beta2: f32,
+}
+
+impl Adam {
+    /// Optimizer for `n` coordinates.
+    pub fn new(n: usize) -> Self {
+        Adam { m: vec![0.0; n], v: vec![0.0; n], t: 0, beta1: 0.9, beta2: 0.999 }
+    }
+
+    /// One step: `x -= lr_k · m̂/(√v̂ + ε)` for the coordinates where `mask` is true.
+    pub fn step(&mut self, x: &mut [f32], grad: &[f32], lr: &[f32], mask: &[bool]) {
+        self.t += 1;
+        let (b1, b2) = (self.beta1, self.beta2);
+        let c1 = 1.0 - b1.powi(self.t);
+        let c2 = 1.0 - b2.powi(self.t);
+        for k in 0..x.len() {
+            if !mask[k] || !grad[k].is_finite() {
+                continue;
+            }
+            self.m[k] = b1 * self.m[k] + (1.0 - b1) * grad[k];
+            self.v[k] = b2 * self.v[k] + (1.0 - b2) * grad[k] * grad[k];
+            let mh = self.m[k] / c1;
+            let vh = self.v[k] / c2;
+            x[k] -= lr[k] * mh / (vh.sqrt() + 1e-8);
+        }
+    }
+}

@@ -1,0 +1,143 @@
+//! The fit's view of the target: the minimum-pattern crop at `c` pixels per cell, the mapping
+//! from pattern cells to pixels, grid detection and colour statistics.
+
+use crate::image_io::Image;
+use crate::pattern::WeavePattern;
+use crate::scene::{CameraSpec, LightRig, Projection, Scene};
+
+/// Scene whose orthographic camera frames exactly one repeat of an `n_e × n_a` pattern at `c`
+/// pixels per cell: cell boundaries fall on pixel boundaries, column `j` of cells is warp `j`,
+/// row `r` of cells (from the top) is weft `n_e − 1 − r` (see [`cell_rect`]).
+pub fn fit_scene(n_e: usize, n_a: usize, c: u32, spp: u32, seed: u64, lights: &LightRig) -> Scene {
+    Scene {
+        width: n_a as u32 * c,
+        height: n_e as u32 * c,
+        spp,
+        seed,
+        camera: CameraSpec {
+            projection: Projection::Orthographic,
+            tiles: 1.0,
+            rotation_deg: 0.0,
+            tilt_deg: 0.0,
+            fov_deg: 30.0,
+            offset: [0.5, 0.5],
+        },
+        lights: lights.clone(),
+        exposure: 1.0,
+    }
+}
+
+/// Pixel rectangle `(x0, y0, x1, y1)` (exclusive ends) of pattern cell `(i, j)` (weft `i`, warp
+/// `j`) in a [`fit_scene`] image with `c` pixels per cell.
+pub fn cell_rect(n_e: usize, i: usize, j: usize, c: u32) -> (u32, u32, u32, u32) {
+    let r = (n_e - 1 - i) as u32;
+    (j as u32 * c, r * c, (j as u32 + 1) * c, (r + 1) * c)
+}
+
+/// Area-weighted (box) resampling to `w × h` (exact for integer factors; upsampling repeats).
+pub fn resample(img: &Image, w: u32, h: u32) -> Image {
+    if img.width == w && img.height == h {
+        return img.clone();
+    }
+    let weights = |n_src: u32, n_dst: u32| -> Vec<Vec<(u32, f32)>> {
+        let s = n_src as f64 / n_dst as f64;
+        (0..n_dst)
+            .map(|i| {
+                let (a, b) = (i as f64 * s, (i + 1) as f64 * s);
+                let mut v = Vec::new();
+                let mut j = a.floor() as u32;
+                while (j as f64) < b && j < n_src {
+                    let wgt = (b.min(j as f64 + 1.0) - a.max(j as f64)) / s;
+                    if wgt > 0.0 {
+                        v.push((j, wgt as f32));
+                    }
+                    j += 1;
+                }
+                v
+            })
+            .collect()
+    };
+    let (wx, wy) = (weights(img.width, w), weights(img.height, h));
+    let mut data = Vec::with_capacity((w * h) as usize);
+    for ys in &wy {
+        for xs in &wx {
+            let mut acc = [0.0f32; 3];
+            for &(y, a) in ys {
+                for &(x, b) in xs {
+                    let p = img.get(x, y);
+                    (0..3).for_each(|k| acc[k] += a * b * p[k]);
+                }
+            }
+            data.push(acc);
+        }
+    }
+    Image::new(w, h, data)
+}
+
+/// Tile an image `nx × ny` times.
+pub fn tile(img: &Image, nx: u32, ny: u32) -> Image {
+    let (w, h) = (img.width * nx, img.height * ny);
+    let data = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).map(|(x, y)| img.get(x % img.width, y % img.height));
+    Image::new(w, h, data.collect())
+}
+
+/// Detect the yarn grid `(n_e, n_a)` of an image that holds exactly one repeat, from the yarn
+/// pitch that `prep` finds on a 3×3 tiling of it (no rectification, no Kernel PCA).
+pub fn detect_grid(img: &Image) -> Option<(usize, usize)> {
+    let tiled = tile(img, 3, 3);
+    let opts = crate::prep::PrepOptions {
+        rectify: false,
+        perspective: false,
+        regularize: false,
+        min_pitch: 3.0,
+        ..Default::default()
+    };
+    let p = crate::prep::prepare(&tiled.to_rgb32f(), &opts).ok()?;
+    let n_a = (img.width as f32 / p.pitch_x).round() as usize;
+    let n_e = (img.height as f32 / p.pitch_y).round() as usize;
+    let ok = |n: usize| (1..=crate::pattern::MAX_SIDE).contains(&n);
+    (ok(n_e) && ok(n_a)).then_some((n_e, n_a))
+}
+
+/// Mean colour of the cells where weft (`weft_on_top = true`) or warp lies on top, over the
+/// inner part of each cell (`margin` of the cell size ignored at each edge). `None` if no cell.
+pub fn yarn_mean(img: &Image, p: &WeavePattern, c: u32, weft_on_top: bool, margin: f32) -> Option<[f32; 3]> {
+    let m = ((c as f32 * margin).round() as u32).min(c.saturating_sub(1) / 2);
+    let mut acc = [0.0f64; 3];
+    let mut n = 0usize;
+    for i in 0..p.n_e() {
+        for j in 0..p.n_a() {
+            if p.get(i, j) != weft_on_top {
+                continue;
+            }
+            let (x0, y0, x1, y1) = cell_rect(p.n_e(), i, j, c);
+            for y in y0 + m..y1 - m {
+                for x in x0 + m..x1 - m {
+                    let v = img.get(x, y);
+                    (0..3).for_each(|k| acc[k] += v[k] as f64);
+                    n += 1;
+                }
+            }
+        }
+    }
+    (n > 0).then(|| acc.map(|a| (a / n as f64) as f32))
+}
+
+/// Mean colour of the brightest `frac` of the pixels (by luminance).
+pub fn top_mean(img: &Image, frac: f32) -> [f32; 3] {
+    let lum = |p: &[f32; 3]| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2];
+    let mut px: Vec<&[f32; 3]> = img.data.iter().collect();
+    px.sort_by(|a, b| lum(b).total_cmp(&lum(a)));
+    let n = ((px.len() as f32 * frac).ceil() as usize).clamp(1, px.len());
+    let mut acc = [0.0f32; 3];
+    for p in &px[..n] {
+        (0..3).for_each(|k| acc[k] += p[k] / n as f32);
+    }
+    acc
+}
+
+/// MSE in linear RGB.
+pub fn mse(a: &Image, b: &Image) -> f32 {
+    let r = a.rmse(b);
+    r * r
+}
