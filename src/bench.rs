@@ -53,7 +53,8 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
     let cmd = if quick { "woven bench --quick" } else { "woven bench" };
     writeln!(md, "Command: `{cmd}` (release build). Scene: twill 2/2, default light rig (ambient + front, back, two sides), orthographic, 2 repeats across, {size}×{size}. Best of {reps} runs.\n")?;
     eprintln!("reference render at {ref_spp} spp …");
-    let (t_ref, reference) = time(1, || render(&cloth, &bench_scene(size, ref_spp, LightRig::default_rig()), &RenderOptions::default()));
+    let (t_ref, reference) =
+        time(1, || render(&cloth, &bench_scene(size, ref_spp, LightRig::default_rig()), &RenderOptions::default()));
     writeln!(md, "Reference: {ref_spp} spp, {t_ref:.1} s on 2 threads.\n")?;
     writeln!(md, "### Time vs error\n\n| spp | threads | wall time (s) | RMSE vs reference (linear) | PSNR (sRGB, dB) |\n|---|---|---|---|---|")?;
     for spp in [1u32, 4, 16, 64] {
@@ -61,7 +62,12 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
             let scene = bench_scene(size, spp, LightRig::default_rig());
             let opts = RenderOptions { threads: Some(threads), ..Default::default() };
             let (t, img) = time(reps, || render(&cloth, &scene, &opts));
-            writeln!(md, "| {spp} | {threads} | {t:.3} | {:.4} | {:.1} |", img.rmse(&reference), img.psnr_srgb(&reference))?;
+            writeln!(
+                md,
+                "| {spp} | {threads} | {t:.3} | {:.4} | {:.1} |",
+                img.rmse(&reference),
+                img.psnr_srgb(&reference)
+            )?;
             eprintln!("{spp} spp, {threads} threads: {t:.3} s");
         }
     }
@@ -77,13 +83,20 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
         let (t_rec, cache) = time(1, || prep.record(&cloth.appearance));
         let (t_sh, _) = time(reps.max(3), || cache.shade(&other));
         let (t_d, _) = time(reps, || cache.mse_and_gradient(&other, &Image::filled(sz, sz, [0.1; 3])));
-        writeln!(md, "| {sz}×{sz} | {spp} | {t_full:.3} | {t_rec:.3} | {:.1} | {:.1} | {} |", t_sh * 1e3, t_d * 1e3, cache.vertex_count())?;
+        writeln!(
+            md,
+            "| {sz}×{sz} | {spp} | {t_full:.3} | {t_rec:.3} | {:.1} | {:.1} | {} |",
+            t_sh * 1e3,
+            t_d * 1e3,
+            cache.vertex_count()
+        )?;
     }
     // Skips.
     writeln!(md, "\n### What each skip saves\n\n| skip | without (s) | with (s) | saving | image difference (RMSE) |\n|---|---|---|---|---|")?;
     let front_only = LightRig { ambient: [0.0; 3], lights: LightRig::named("front").expect("rig").lights };
     let scene = bench_scene(size, 4, front_only);
-    let (t_no, a) = time(reps, || render(&cloth, &scene, &RenderOptions { skip_unlit_transmission: false, ..Default::default() }));
+    let (t_no, a) =
+        time(reps, || render(&cloth, &scene, &RenderOptions { skip_unlit_transmission: false, ..Default::default() }));
     let (t_yes, b) = time(reps, || render(&cloth, &scene, &RenderOptions::default()));
     writeln!(md, "| no transmission paths when nothing lights the back (front light only, 4 spp) | {t_no:.3} | {t_yes:.3} | {:.0}% | {:.5} |", 100.0 * (1.0 - t_yes / t_no), a.rmse(&b))?;
     let scene = bench_scene(128, 4, LightRig::default_rig());
@@ -93,7 +106,10 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
     let (t_re, b) = time(reps.max(3), || cache.shade(&other));
     writeln!(md, "| no re-tracing when only appearance changed (128², 4 spp) | {t_full:.3} | {t_re:.4} | {:.1}% | {:.5} (same paths sampled with θ₀) |", 100.0 * (1.0 - t_re / t_full), a.rmse(&b))?;
     for tiles in [2.0f32, 8.0] {
-        let scene = Scene { camera: CameraSpec { tiles, ..Default::default() }, ..bench_scene(size, 4, LightRig::default_rig()) };
+        let scene = Scene {
+            camera: CameraSpec { tiles, ..Default::default() },
+            ..bench_scene(size, 4, LightRig::default_rig())
+        };
         let whole = RenderOptions { whole_fabric: true, ..Default::default() };
         let (t_w, a) = time(reps, || render(&cloth, &scene, &whole));
         let (t_t, b) = time(reps, || render(&cloth, &scene, &RenderOptions::default()));
@@ -101,8 +117,44 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
         let caps_t = Prepared::new(&cloth, &scene, &RenderOptions::default()).geom.capsule_count();
         writeln!(md, "| one periodic tile instead of every repeat in view ({tiles} repeats across; {caps_w} → {caps_t} capsules) | {t_w:.3} | {t_t:.3} | {:.0}% | {:.5} |", 100.0 * (1.0 - t_t / t_w), a.rmse(&b))?;
     }
+    md.push_str(&visibility_table(&cloth)?);
     print!("{md}");
     replace_section(out, "Forward model", &md)?;
     eprintln!("wrote {}", out.display());
     Ok(())
+}
+
+/// Decision 4 check: does each appearance parameter visibly change the image over its range? RMSE
+/// (linear) between renders at the parameter's minimum and maximum, everything else at the preset, for
+/// the front-lit and back-lit rigs (re-shaded from one set of recorded paths per rig).
+pub fn visibility_table(cloth: &ClothParams) -> Result<String> {
+    use crate::params::APPEARANCE_RANGES;
+    let mut md = String::from("\n### Does every parameter change the image? (decision 4)\n\nRMSE between renders with the parameter at its minimum and at its maximum (96×96, 16 spp, twill 2/2 preset otherwise; mean pixel value ≈ 0.1–0.3). `≈0` marks parameters the image cannot determine.\n\n| parameter | range | front rig | back rig |\n|---|---|---|---|\n");
+    let rigs = [LightRig::named("front").expect("rig"), LightRig::named("back").expect("rig")];
+    let caches: Vec<_> = rigs
+        .iter()
+        .map(|rig| {
+            let scene = bench_scene(96, 16, rig.clone());
+            Prepared::new(cloth, &scene, &RenderOptions::default()).record(&cloth.appearance)
+        })
+        .collect();
+    let base = cloth.appearance.to_vec();
+    for (i, r) in APPEARANCE_RANGES.iter().enumerate() {
+        if r.name.ends_with("[1]") || r.name.ends_with("[2]") {
+            continue; // colour channels behave alike: report channel 0
+        }
+        let mut cells = Vec::new();
+        for c in &caches {
+            let mut lo = base;
+            let mut hi = base;
+            lo[i] = r.min;
+            hi[i] = r.max;
+            let d = c
+                .shade(&crate::params::Appearance::from_slice(&lo))
+                .rmse(&c.shade(&crate::params::Appearance::from_slice(&hi)));
+            cells.push(if d < 1e-4 { format!("≈0 ({d:.1e})") } else { format!("{d:.4}") });
+        }
+        writeln!(md, "| `{}` | [{}, {}] | {} | {} |", r.name, r.min, r.max, cells[0], cells[1])?;
+    }
+    Ok(md)
 }

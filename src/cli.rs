@@ -213,6 +213,9 @@ pub fn prep(image: &Path, out: &Path, no_perspective: bool) -> Result<crate::pre
 pub fn crop(img: &Image, x: u32, y: u32, w: u32, h: u32) -> Image {
     let w = w.min(img.width.saturating_sub(x)).max(1);
     let h = h.min(img.height.saturating_sub(y)).max(1);
-    let data = (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| img.get((x + i).min(img.width - 1), (y + j).min(img.height - 1))).collect();
+    let data = (0..h)
+        .flat_map(|j| (0..w).map(move |i| (i, j)))
+        .map(|(i, j)| img.get((x + i).min(img.width - 1), (y + j).min(img.height - 1)))
+        .collect();
     Image::new(w, h, data)
 }

@@ -64,10 +64,9 @@ struct LabelLine {
 /// A dataset folder written by `woven generate`: class names and samples.
 pub fn load_dataset(dir: &Path) -> Result<(Vec<String>, Vec<Sample>, String)> {
     let manifest_path = dir.join("manifest.json");
-    let manifest: serde_json::Value = serde_json::from_slice(
-        &std::fs::read(&manifest_path)
-            .with_context(|| format!("reading {} (make a dataset with `woven generate --out DIR`)", manifest_path.display()))?,
-    )
+    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(&manifest_path).with_context(|| {
+        format!("reading {} (make a dataset with `woven generate --out DIR`)", manifest_path.display())
+    })?)
     .with_context(|| format!("parsing {}", manifest_path.display()))?;
     let mut classes: Vec<(usize, String)> = manifest["classes"]
         .as_array()

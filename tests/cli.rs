@@ -19,7 +19,8 @@ fn params_then_render_writes_png_and_exr() {
     std::fs::write(&pf, &json).unwrap();
     let png = dir.path().join("a.png");
     let exr = dir.path().join("a.exr");
-    let args = ["render", "--params", pf.to_str().unwrap(), "--out", png.to_str().unwrap(), "--exr", exr.to_str().unwrap()];
+    let args =
+        ["render", "--params", pf.to_str().unwrap(), "--out", png.to_str().unwrap(), "--exr", exr.to_str().unwrap()];
     let out = woven(&[&args[..], &["--width", "24", "--height", "16", "--spp", "1"]].concat());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let img = image::open(&png).unwrap();

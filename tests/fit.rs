@@ -1,22 +1,183 @@
-use woven::params::*;
-use woven::render::*;
-use woven::scene::*;
+//! Tests of `woven fit` (library): annealing rules, barrier, a small synthetic fit, stop flag,
+//! input errors. Fast settings; a few seconds each on 2 cores.
+
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+use woven::fit::anneal::{
+    acceptance_probability, barrier, barrier_grad, metropolis_accept, temperature, BARRIER_LAMBDA, DECAY, T0,
+};
+use woven::fit::cli::{demo_cloth, run_fit, synthetic_target, FitArgs};
+use woven::fit::target::{cell_rect, fit_scene, yarn_mean};
+use woven::fit::{fit, output, FitOptions};
+use woven::image_io::Image;
+use woven::params::{Appearance, ClothParams};
 use woven::pattern::WeavePattern;
+
+fn small_opts() -> FitOptions {
+    FitOptions { prep: false, iterations: 40, px_per_cell: 8, model: None, threads: Some(2), ..FitOptions::fast() }
+}
+
+fn two_colour_cloth(pattern: &str) -> ClothParams {
+    let mut a = Appearance::default();
+    a.r_b_e = [0.8, 0.2, 0.1];
+    a.s_b_e = a.r_b_e;
+    a.r_b_a = [0.1, 0.3, 0.8];
+    a.s_b_a = a.r_b_a;
+    ClothParams { pattern: WeavePattern::parse(pattern).unwrap(), n_p: 3, n_f: 30, r_e: 4.2, r_a: 4.2, appearance: a }
+}
+
 #[test]
-fn probe() {
-    for (c, spp) in [(8u32, 4u32), (16, 4), (16, 8)] {
-    let pat = WeavePattern::preset("twill22").unwrap();
-    let cloth = ClothParams { pattern: pat.clone(), n_p: 3, n_f: 30, r_e: 4.2, r_a: 4.2, appearance: Appearance::default() };
-    let scene = Scene { width: 4*c, height: 4*c, spp, seed: 1, camera: CameraSpec { tiles: 1.0, offset: [0.5,0.5], ..Default::default() }, ..Default::default() };
-    let t = std::time::Instant::now();
-    let prep = Prepared::new(&cloth, &scene, &RenderOptions::default());
-    let t1 = t.elapsed().as_secs_f64();
-    let cache = prep.record(&cloth.appearance);
-    let t2 = t.elapsed().as_secs_f64();
-    let img = cache.shade(&cloth.appearance);
-    let t3 = t.elapsed().as_secs_f64();
-    let _ = cache.mse_and_gradient(&cloth.appearance, &img);
-    let t4 = t.elapsed().as_secs_f64();
-    println!("c={c} spp={spp} new {t1:.4} record {:.4} shade {:.4} grad {:.4} verts {}", t2-t1, t3-t2, t4-t3, cache.vertex_count());
+fn schedule_is_t0_times_decay_power() {
+    assert_eq!(T0, 100.0);
+    assert_eq!(DECAY, 0.98);
+    for k in [0usize, 1, 10, 100, 300] {
+        let t = temperature(T0, DECAY, k);
+        assert!((t - 100.0 * 0.98f64.powi(k as i32)).abs() < 1e-9 * t.max(1.0), "k={k} T={t}");
     }
+    assert!(temperature(T0, DECAY, 1) < temperature(T0, DECAY, 0));
+}
+
+#[test]
+fn metropolis_rule_statistics() {
+    let mut rng = StdRng::seed_from_u64(42);
+    // Downhill and flat moves: always accepted.
+    for d in [-1e6, -5.0, -1e-9, 0.0] {
+        assert_eq!(acceptance_probability(d, 10.0), 1.0);
+        assert!((0..1000).all(|_| metropolis_accept(d, 10.0, &mut rng)));
+        assert!(metropolis_accept(d, 0.0, &mut rng));
+    }
+    // Uphill at T = 0: never.
+    assert!((0..1000).all(|_| !metropolis_accept(1e-6, 0.0, &mut rng)));
+    // Uphill: frequency matches exp(-Δ/T) within 4 sigma.
+    for (d, t) in [(69.31, 100.0), (10.0, 5.0), (1.0, 10.0), (300.0, 100.0)] {
+        let p = (-(d as f64) / t).exp();
+        assert!((acceptance_probability(d, t) - p).abs() < 1e-12);
+        let n = 20_000;
+        let k = (0..n).filter(|_| metropolis_accept(d, t, &mut rng)).count() as f64;
+        let sigma = (p * (1.0 - p) / n as f64).sqrt();
+        assert!((k / n as f64 - p).abs() < 4.0 * sigma + 1e-3, "Δ={d} T={t}: rate {} vs {p}", k / n as f64);
+    }
+}
+
+#[test]
+fn barrier_zero_inside_quadratic_outside() {
+    assert_eq!(BARRIER_LAMBDA, 0.01);
+    for x in [0.2f32, 0.5, 0.8] {
+        assert_eq!(barrier(x, 0.2, 0.8, BARRIER_LAMBDA), 0.0);
+        assert_eq!(barrier_grad(x, 0.2, 0.8, BARRIER_LAMBDA), 0.0);
+    }
+    assert!((barrier(1.0, 0.2, 0.8, 0.01) - 0.01 * 0.04).abs() < 1e-8);
+    assert!((barrier(0.0, 0.2, 0.8, 0.01) - 0.01 * 0.04).abs() < 1e-8);
+    assert!((barrier(1.3, 0.2, 0.8, 0.01) - 0.01 * 0.25).abs() < 1e-8);
+    // Gradient pushes back inside: positive above the range, negative below.
+    assert!(barrier_grad(1.0, 0.2, 0.8, 0.01) > 0.0);
+    assert!(barrier_grad(0.0, 0.2, 0.8, 0.01) < 0.0);
+    assert!((barrier_grad(1.0, 0.2, 0.8, 0.01) - 2.0 * 0.01 * 0.2).abs() < 1e-7);
+    // Matches a finite difference.
+    let (x, h) = (9.5f32, 1e-3f32);
+    let fd = (barrier(x + h, 9.0, 11.0, 0.01) - barrier(x - h, 9.0, 11.0, 0.01)) / (2.0 * h);
+    assert_eq!(fd, 0.0);
+    let x = 11.5f32;
+    let fd = (barrier(x + h, 9.0, 11.0, 0.01) - barrier(x - h, 9.0, 11.0, 0.01)) / (2.0 * h);
+    assert!((fd - barrier_grad(x, 9.0, 11.0, 0.01)).abs() < 1e-4);
+}
+
+#[test]
+fn cell_mapping_matches_the_renderer() {
+    // Plain weave, red weft / blue warp: the weft-on-top cells must be red.
+    let cloth = two_colour_cloth("10/01");
+    let img = synthetic_target(&cloth, 12, 4, 3, Some(2));
+    let p = &cloth.pattern;
+    let weft = yarn_mean(&img, p, 12, true, 0.2).unwrap();
+    let warp = yarn_mean(&img, p, 12, false, 0.2).unwrap();
+    assert!(weft[0] > weft[2] && warp[2] > warp[0], "weft {weft:?} warp {warp:?}");
+    let s = fit_scene(2, 3, 12, 1, 1, &Default::default());
+    assert_eq!((s.width, s.height), (36, 24));
+    assert_eq!(cell_rect(2, 1, 2, 12), (24, 0, 36, 12));
+}
+
+#[test]
+fn small_fit_recovers_pattern_and_colours() {
+    let truth = two_colour_cloth("1100/0110/0011/1001");
+    let target = synthetic_target(&truth, 8, 8, 777, Some(2));
+    let opts = small_opts();
+    let res = fit(&target, &opts).unwrap();
+    assert!(res.params.cloth.pattern.equivalent(&truth.pattern), "fit {} vs {}", res.params.cloth.pattern, truth.pattern);
+    let a = &res.cloth.appearance;
+    // Weft red-dominant, warp blue-dominant, roughly the right values.
+    assert!(a.r_b_e[0] > a.r_b_e[2] + 0.3, "r_b_e {:?}", a.r_b_e);
+    assert!(a.r_b_a[2] > a.r_b_a[0] + 0.3, "r_b_a {:?}", a.r_b_a);
+    assert!(res.psnr_db > 24.0, "psnr {}", res.psnr_db);
+    res.params.validate().unwrap();
+    assert!(res.history.len() == opts.iterations);
+}
+
+#[test]
+fn stop_flag_keeps_best_and_writes_files() {
+    let truth = two_colour_cloth("10/01");
+    let target = synthetic_target(&truth, 8, 8, 5, Some(2));
+    let mut opts = small_opts();
+    opts.iterations = 200;
+    let stop = Arc::new(AtomicBool::new(false));
+    opts.stop = stop.clone();
+    let count = Arc::new(AtomicUsize::new(0));
+    let (s2, c2) = (stop.clone(), count.clone());
+    opts.on_iter = Some(Arc::new(move |_| {
+        if c2.fetch_add(1, Ordering::SeqCst) + 1 == 6 {
+            s2.store(true, Ordering::SeqCst);
+        }
+    }));
+    let res = fit(&target, &opts).unwrap();
+    assert!(res.stopped);
+    assert_eq!(res.history.len(), 6, "stopped after 6 iterations");
+    let min_seen = res.history.iter().map(|l| l.loss).fold(f32::MAX, f32::min);
+    assert!(res.best_loss <= min_seen + 1e-9, "best {} > min seen {}", res.best_loss, min_seen);
+    let dir = tempfile::tempdir().unwrap();
+    output::write_outputs(&res, &target, dir.path(), Some(2)).unwrap();
+    for f in ["fit.json", "fit.png", "compare.png", "trace.png", "log.jsonl"] {
+        assert!(dir.path().join(f).is_file(), "{f} missing");
+    }
+    let log = std::fs::read_to_string(dir.path().join("log.jsonl")).unwrap();
+    assert_eq!(log.lines().count(), 6);
+    woven::ParamFile::load(&dir.path().join("fit.json")).unwrap();
+}
+
+#[test]
+fn bad_inputs_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    // Missing image.
+    let args = FitArgs::new(dir.path().join("nope.png"), dir.path().join("out"));
+    let e = format!("{:#}", run_fit(&args).unwrap_err());
+    assert!(e.contains("nope.png") && e.contains("not found"), "{e}");
+    // Tiny image.
+    let e = format!("{:#}", fit(&Image::filled(8, 8, [0.5; 3]), &small_opts()).unwrap_err());
+    assert!(e.contains("8×8") && e.contains("at least"), "{e}");
+    // NaN pixels.
+    let mut img = Image::filled(32, 32, [0.5; 3]);
+    img.data[40][1] = f32::NAN;
+    let e = format!("{:#}", fit(&img, &small_opts()).unwrap_err());
+    assert!(e.to_lowercase().contains("nan") || e.contains("finite"), "{e}");
+    // Bad --pattern.
+    let png = dir.path().join("in.png");
+    Image::filled(32, 32, [0.5; 3]).save_png(&png).unwrap();
+    let mut args = FitArgs::new(&png, dir.path().join("out"));
+    args.pattern = Some("12/01".into());
+    let e = format!("{:#}", run_fit(&args).unwrap_err());
+    assert!(e.contains("--pattern") && e.contains("non-binary"), "{e}");
+    // Bad grid.
+    let mut args = FitArgs::new(&png, dir.path().join("out"));
+    args.grid = Some("4by4".into());
+    assert!(format!("{:#}", run_fit(&args).unwrap_err()).contains("--grid"));
+    // Uniform image without prep and without grid: no yarn grid.
+    let e = format!("{:#}", fit(&Image::filled(32, 32, [0.5; 3]), &small_opts()).unwrap_err());
+    assert!(e.contains("grid"), "{e}");
+}
+
+#[test]
+#[ignore]
+fn demo_run() {
+    let _ = demo_cloth();
+    woven::fit::cli::run_demo(std::path::Path::new("/tmp/woven_demo"), true).unwrap();
 }

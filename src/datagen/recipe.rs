@@ -246,7 +246,7 @@ impl Default for Recipe {
                 side: Span::uniform(0.0, 1.5),
                 back: Span::uniform(0.5, 4.0),
                 back_probability: 0.6,
-                back_cone_deg: 20.0,
+                back_cone_deg: 45.0,
             },
             exposure: Span { range: [0.6, 1.6], dist: Dist::Loguniform },
             noise: NoisePrior { read_sigma: Span::uniform(0.0, 0.01), shot_gain: Span::uniform(0.0, 0.002) },

@@ -173,7 +173,9 @@ impl Recipe {
             projection: if perspective { Projection::Perspective } else { Projection::Orthographic },
             tiles,
             rotation_deg,
-            tilt_deg,
+            // Tilt only with the pinhole camera: the orthographic camera starts tilted rays below the
+            // cloth at the low edge of the frame (a band of background; reported to the renderer's owner).
+            tilt_deg: if perspective { tilt_deg } else { 0.0 },
             fov_deg: if perspective { fov_deg } else { CameraSpec::default().fov_deg },
             offset,
         };

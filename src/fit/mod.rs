@@ -1,1 +1,828 @@
-//! fit
+//! `woven fit`: recover pattern, geometry and appearance from one image (pipeline.md §4–5).
+//!
+//! Stages: optional preparation (`prep`) → pattern pre-estimation (greedy sweeps, temperature 0)
+//! → network pre-estimation (when a model exists) → colour pre-estimation (converted to `R^B`
+//! through the renderer's response) → a second greedy pattern sweep with the colours → joint
+//! optimization: Adam on the 30 appearance scalars with exact gradients (`PathCache`), the radii
+//! by same-seed central differences every few iterations, and simulated annealing of the pattern
+//! cells, `n_p` and `n_f` in the same loop (Metropolis, `T_k = 100·0.98^k`), keeping the best state.
+//!
+//! **Loss unit.** The gradient loss is the linear-RGB MSE plus the barrier (λ = 0.01 per scalar, raw
+//! units). The annealing energy is `E = K·MSE`; `K` is calibrated per fit from a few proposals
+//! drawn at the start of the joint loop so that the median uphill proposal costs `T0·ln 2`, i.e.
+//! half of the early uphill proposals are accepted (pipeline §5); `--energy-scale` fixes it.
+
+pub mod anneal;
+pub mod cli;
+pub mod output;
+pub mod target;
+
+use crate::image_io::Image;
+use crate::params::{Appearance, ClothParams, ParamFile, APPEARANCE_RANGES, N_APPEARANCE, NF_RANGE, NP_RANGE};
+use crate::pattern::WeavePattern;
+use crate::render::{PathCache, Prepared, RenderOptions};
+use crate::scene::{LightRig, Scene};
+use anneal::{Adam, BARRIER_LAMBDA};
+use anyhow::{bail, Context, Result};
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+use target::{fit_scene, mse, resample};
+
+/// Smallest accepted input side in pixels.
+pub const MIN_INPUT_SIDE: u32 = 16;
+
+/// Joint (the paper's method) or separate (pattern first, then appearance) optimization.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum FitMode {
+    /// Annealing and gradient descent in the same loop.
+    Joint,
+    /// First half: annealing of the discrete parameters only; second half: gradient descent only.
+    Separate,
+}
+
+/// Callback run after every iteration.
+pub type IterCallback = Arc<dyn Fn(&IterLog) + Send + Sync>;
+
+/// Options of [`fit`].
+#[derive(Clone)]
+pub struct FitOptions {
+    /// Joint or separate optimization.
+    pub mode: FitMode,
+    /// Run the pre-estimation (pattern sweep, network, colours); otherwise start from twill + grey.
+    pub pre_estimate: bool,
+    /// Run `prep` (rectify, regularize, grid) on the input; otherwise the input is one repeat.
+    pub prep: bool,
+    /// Fixed pattern: no pattern estimation, no cell proposals (n_p, n_f are still annealed).
+    pub pattern: Option<WeavePattern>,
+    /// Grid `(n_e, n_a)` of an input without prep; detected from the image when `None`.
+    pub grid: Option<(usize, usize)>,
+    /// Joint-optimization iterations.
+    pub iterations: usize,
+    /// Pixels per pattern cell of the fit renders.
+    pub px_per_cell: u32,
+    /// Samples per pixel of the fit renders.
+    pub spp: u32,
+    /// Pixels per cell and spp of the pattern pre-estimation renders.
+    pub pre_px_per_cell: u32,
+    /// Samples per pixel of the pre-estimation renders.
+    pub pre_spp: u32,
+    /// Samples per pixel of the final render.
+    pub final_spp: u32,
+    /// Maximum greedy sweeps of the pattern pre-estimation.
+    pub max_sweeps: usize,
+    /// Adam step size as a fraction of each parameter's range.
+    pub lr: f32,
+    /// Radii step every this many iterations (0: radii fixed).
+    pub radius_every: usize,
+    /// Initial temperature.
+    pub t0: f64,
+    /// Temperature decay per iteration.
+    pub decay: f64,
+    /// Energy per unit MSE; calibrated when `None`.
+    pub energy_scale: Option<f64>,
+    /// Greedy pass over all cells with the final appearance.
+    pub polish: bool,
+    /// Render and proposal seed.
+    pub seed: u64,
+    /// Light rig of the fit scene.
+    pub lights: LightRig,
+    /// Pre-estimator model; used when the file exists.
+    pub model: Option<PathBuf>,
+    /// Worker threads (`None`: rayon default).
+    pub threads: Option<usize>,
+    /// Set to stop early (Ctrl-C); the best state so far is returned.
+    pub stop: Arc<AtomicBool>,
+    /// Show a progress bar.
+    pub progress: bool,
+    /// Called after each iteration.
+    pub on_iter: Option<IterCallback>,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions {
+            mode: FitMode::Joint,
+            pre_estimate: true,
+            prep: true,
+            pattern: None,
+            grid: None,
+            iterations: 300,
+            px_per_cell: 16,
+            spp: 4,
+            pre_px_per_cell: 8,
+            pre_spp: 2,
+            final_spp: 16,
+            max_sweeps: 4,
+            lr: 0.03,
+            radius_every: 4,
+            t0: anneal::T0,
+            decay: anneal::DECAY,
+            energy_scale: None,
+            polish: true,
+            seed: 1,
+            lights: LightRig::default_rig(),
+            model: Some(PathBuf::from("models/pre_estimator.safetensors")),
+            threads: None,
+            stop: Arc::new(AtomicBool::new(false)),
+            progress: false,
+            on_iter: None,
+        }
+    }
+}
+
+impl FitOptions {
+    /// Fast settings (tests, demo, eval): smaller renders, fewer iterations.
+    pub fn fast() -> Self {
+        FitOptions { iterations: 120, px_per_cell: 10, spp: 4, pre_px_per_cell: 8, pre_spp: 2, final_spp: 8, ..Default::default() }
+    }
+}
+
+/// One line of `log.jsonl`.
+#[derive(Clone, Debug, Serialize)]
+pub struct IterLog {
+    /// Iteration (0-based, over both stages in separate mode).
+    pub iter: usize,
+    /// `joint`, `pattern` or `appearance`.
+    pub stage: &'static str,
+    /// Temperature.
+    pub temperature: f64,
+    /// MSE of the current state (linear RGB).
+    pub mse: f32,
+    /// MSE + barrier.
+    pub loss: f32,
+    /// Best loss so far.
+    pub best_loss: f32,
+    /// Proposal (`cell i,j`, `n_p 3->4`, …) or empty.
+    pub proposal: String,
+    /// Energy change of the proposal.
+    pub delta_e: f64,
+    /// Whether it was accepted.
+    pub accepted: bool,
+    /// Current `n_p`.
+    pub n_p: u32,
+    /// Current `n_f`.
+    pub n_f: u32,
+    /// Current radii.
+    pub r_e: f32,
+    /// Current radii.
+    pub r_a: f32,
+    /// Current appearance vector (order of `APPEARANCE_RANGES`).
+    pub appearance: Vec<f32>,
+    /// Current pattern.
+    pub pattern: String,
+    /// Seconds since the start of the fit.
+    pub secs: f64,
+}
+
+/// Best state at an iteration (for run-time-vs-error).
+#[derive(Clone, Debug)]
+pub struct Checkpoint {
+    /// Iterations done.
+    pub iter: usize,
+    /// Seconds since the start of the fit.
+    pub secs: f64,
+    /// Best cloth at that point.
+    pub cloth: ClothParams,
+}
+
+/// Everything a fit produces.
+#[derive(Clone)]
+pub struct FitResult {
+    /// Best cloth with the reduced pattern, and a scene that renders the input's framing.
+    pub params: ParamFile,
+    /// Best cloth with the fit grid (unreduced pattern).
+    pub cloth: ClothParams,
+    /// Scene of the fit renders (one repeat of the unreduced grid).
+    pub fit_scene: Scene,
+    /// Target at fit resolution.
+    pub target: Image,
+    /// Final render of the best state at fit resolution.
+    pub render: Image,
+    /// PSNR (sRGB) of `render` against `target`.
+    pub psnr_db: f32,
+    /// MSE + barrier of the best state (during the fit).
+    pub best_loss: f32,
+    /// Pattern after pre-estimation.
+    pub pre_pattern: WeavePattern,
+    /// Cloth after pre-estimation.
+    pub initial: ClothParams,
+    /// Per-iteration log.
+    pub history: Vec<IterLog>,
+    /// Best states along the way.
+    pub checkpoints: Vec<Checkpoint>,
+    /// Energy per unit MSE used by the annealing.
+    pub energy_scale: f64,
+    /// Stopped early by the stop flag.
+    pub stopped: bool,
+    /// Preparation result (when prep ran).
+    pub prep: Option<crate::prep::Prepared>,
+    /// Warnings (e.g. no model).
+    pub warnings: Vec<String>,
+    /// Seconds: prep, pre-estimation, optimization, total.
+    pub timings: [f64; 4],
+    /// Number of re-traces (geometry records and renders).
+    pub retraces: usize,
+}
+
+/// Grey default appearance of the pre-estimation (paper §5.1).
+pub fn grey_appearance() -> Appearance {
+    Appearance {
+        r_s: [0.5; 3],
+        r_b_e: [0.5; 3],
+        r_b_a: [0.5; 3],
+        s_b_e: [0.5; 3],
+        s_b_a: [0.5; 3],
+        ..Appearance::default()
+    }
+}
+
+/// Default twill (2/2, diagonal `(i + j) mod 4 < 2`) on an `n_e × n_a` grid, unreduced.
+pub fn default_twill(n_e: usize, n_a: usize) -> WeavePattern {
+    let rows: Vec<Vec<bool>> = (0..n_e).map(|i| (0..n_a).map(|j| (i + j) % 4 < 2).collect()).collect();
+    WeavePattern::from_rows_unreduced(&rows).expect("grid within limits")
+}
+
+fn unreduced(p: &WeavePattern) -> WeavePattern {
+    WeavePattern::from_rows_unreduced(&p.rows()).expect("valid pattern")
+}
+
+/// Check an input image: size and finite values.
+pub fn check_input(img: &Image) -> Result<()> {
+    if img.width < MIN_INPUT_SIDE || img.height < MIN_INPUT_SIDE {
+        bail!(
+            "input image is {}×{} px; the fit needs at least {MIN_INPUT_SIDE}×{MIN_INPUT_SIDE} (one pattern repeat at a few pixels per yarn)",
+            img.width,
+            img.height
+        );
+    }
+    img.check_finite("input image").map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(())
+}
+
+/// Renders a cloth against a fixed target.
+struct Evaluator {
+    scene: Scene,
+    target: Image,
+    opts: RenderOptions,
+    retraces: std::cell::Cell<usize>,
+}
+
+impl Evaluator {
+    fn new(scene: Scene, target: Image) -> Self {
+        Evaluator { scene, target, opts: RenderOptions::default(), retraces: std::cell::Cell::new(0) }
+    }
+    fn record(&self, cloth: &ClothParams) -> PathCache {
+        self.retraces.set(self.retraces.get() + 1);
+        Prepared::new(cloth, &self.scene, &self.opts).record(&cloth.appearance)
+    }
+    fn render(&self, cloth: &ClothParams) -> Image {
+        self.retraces.set(self.retraces.get() + 1);
+        Prepared::new(cloth, &self.scene, &self.opts).render(&cloth.appearance)
+    }
+    fn mse_of(&self, img: &Image) -> f32 {
+        mse(img, &self.target)
+    }
+}
+
+/// Greedy pattern sweeps at temperature 0: toggle each cell, keep it when the MSE drops; repeat
+/// until a sweep changes nothing. Returns the pattern and the uphill MSE changes seen.
+fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, max_sweeps: usize, stop: &AtomicBool) -> Vec<f32> {
+    let mut uphill = Vec::new();
+    let mut cur = ev.mse_of(&ev.render(cloth));
+    for _ in 0..max_sweeps {
+        let mut changed = false;
+        for i in 0..cloth.pattern.n_e() {
+            for j in 0..cloth.pattern.n_a() {
+                if stop.load(Ordering::Relaxed) {
+                    return uphill;
+                }
+                let mut c = cloth.clone();
+                c.pattern = cloth.pattern.toggled(i, j);
+                let l = ev.mse_of(&ev.render(&c));
+                if l < cur {
+                    *cloth = c;
+                    cur = l;
+                    changed = true;
+                } else {
+                    uphill.push(l - cur);
+                }
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    uphill
+}
+
+/// Colour pre-estimation (paper §5.2) converted into `R^B` through the renderer: per channel a
+/// two-point affine fit of the rendered cell means against `R^B` (the cache re-shades, no
+/// re-trace); specular colour from the top-10% pixels, converted the same way.
+fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) {
+    let p = cloth.pattern.clone();
+    let t = &ev.target;
+    let (me, ma) = (target::yarn_mean(t, &p, c, true, 0.1), target::yarn_mean(t, &p, c, false, 0.1));
+    let cache = ev.record(cloth);
+    let with_body = |v: f32| {
+        let mut a = cloth.appearance.clone();
+        a.r_b_e = [v; 3];
+        a.r_b_a = [v; 3];
+        a.s_b_e = [v; 3];
+        a.s_b_a = [v; 3];
+        a
+    };
+    let (lo, hi) = (0.3f32, 0.9f32);
+    let (i0, i1) = (cache.shade(&with_body(lo)), cache.shade(&with_body(hi)));
+    let solve = |m: [f32; 3], r0: [f32; 3], r1: [f32; 3]| {
+        let mut out = [0.5f32; 3];
+        for k in 0..3 {
+            let slope = (r1[k] - r0[k]) / (hi - lo);
+            out[k] = if slope.abs() > 1e-6 { lo + (m[k] - r0[k]) / slope } else { 0.5 };
+            out[k] = out[k].clamp(0.01, 1.0);
+        }
+        out
+    };
+    if let (Some(m), Some(r0), Some(r1)) =
+        (me, target::yarn_mean(&i0, &p, c, true, 0.1), target::yarn_mean(&i1, &p, c, true, 0.1))
+    {
+        cloth.appearance.r_b_e = solve(m, r0, r1);
+        cloth.appearance.s_b_e = cloth.appearance.r_b_e;
+    }
+    if let (Some(m), Some(r0), Some(r1)) =
+        (ma, target::yarn_mean(&i0, &p, c, false, 0.1), target::yarn_mean(&i1, &p, c, false, 0.1))
+    {
+        cloth.appearance.r_b_a = solve(m, r0, r1);
+        cloth.appearance.s_b_a = cloth.appearance.r_b_a;
+    }
+    // Specular colour from the brightest 10 %.
+    let with_spec = |v: f32| {
+        let mut a = cloth.appearance.clone();
+        a.r_s = [v; 3];
+        a
+    };
+    let m = target::top_mean(t, 0.1);
+    let (s0, s1) = (target::top_mean(&cache.shade(&with_spec(lo)), 0.1), target::top_mean(&cache.shade(&with_spec(hi)), 0.1));
+    cloth.appearance.r_s = solve(m, s0, s1);
+}
+
+/// Apply a pre-estimator prediction (everything but the pattern and the analytic colours).
+fn apply_network(cloth: &mut ClothParams, pred: &crate::net::Prediction) {
+    let mut v = cloth.appearance.to_vec();
+    for (k, r) in APPEARANCE_RANGES.iter().enumerate() {
+        if r.name.starts_with("r_b_") || r.name.starts_with("r_s[") {
+            continue;
+        }
+        if let Some(x) = pred.get(r.name) {
+            if x.is_finite() {
+                v[k] = (x as f32).clamp(r.min, r.max);
+            }
+        }
+    }
+    cloth.appearance = Appearance::from_slice(&v);
+    if let Some(x) = pred.get("n_p").filter(|x| x.is_finite()) {
+        cloth.n_p = (x.round() as u32).clamp(NP_RANGE.0, NP_RANGE.1);
+    }
+    if let Some(x) = pred.get("n_f").filter(|x| x.is_finite()) {
+        cloth.n_f = (x.round() as u32).clamp(NF_RANGE.0, NF_RANGE.1);
+    }
+    if let Some(x) = pred.get("r_e").filter(|x| x.is_finite()) {
+        cloth.r_e = (x as f32).clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
+    }
+    if let Some(x) = pred.get("r_a").filter(|x| x.is_finite()) {
+        cloth.r_a = (x as f32).clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
+    }
+}
+
+/// A discrete proposal: a cell toggle (80 %), `n_p ± 1` (10 %) or `n_f ± 1..5` (10 %).
+fn propose(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> (ClothParams, String) {
+    let mut c = cloth.clone();
+    let r: f32 = rng.random();
+    if cells && r < 0.8 {
+        let i = rng.random_range(0..cloth.pattern.n_e());
+        let j = rng.random_range(0..cloth.pattern.n_a());
+        c.pattern = cloth.pattern.toggled(i, j);
+        return (c, format!("cell {i},{j}"));
+    }
+    if (cells && r < 0.9) || (!cells && r < 0.5) {
+        let up = if cloth.n_p <= NP_RANGE.0 { true } else if cloth.n_p >= NP_RANGE.1 { false } else { rng.random() };
+        c.n_p = if up { cloth.n_p + 1 } else { cloth.n_p - 1 };
+        let d = format!("n_p {}->{}", cloth.n_p, c.n_p);
+        (c, d)
+    } else {
+        let d: i32 = rng.random_range(1..=5) * if rng.random::<bool>() { 1 } else { -1 };
+        let mut nf = (cloth.n_f as i32 + d).clamp(NF_RANGE.0 as i32, NF_RANGE.1 as i32) as u32;
+        if nf == cloth.n_f {
+            nf = (cloth.n_f as i32 - d).clamp(NF_RANGE.0 as i32, NF_RANGE.1 as i32) as u32;
+        }
+        c.n_f = nf;
+        (c, format!("n_f {}->{}", cloth.n_f, nf))
+    }
+}
+
+fn clamp_ranges(cloth: &ClothParams) -> ClothParams {
+    let mut c = cloth.clone();
+    let v: Vec<f32> =
+        c.appearance.to_vec().iter().zip(APPEARANCE_RANGES).map(|(x, r)| x.clamp(r.min, r.max)).collect();
+    c.appearance = Appearance::from_slice(&v);
+    c.r_e = c.r_e.clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
+    c.r_a = c.r_a.clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
+    c
+}
+
+fn total_loss(mse: f32, x: &[f32; N_APPEARANCE]) -> f32 {
+    mse + anneal::appearance_barrier(x).0
+}
+
+/// Scene rendering the input's framing for a cloth with `reduced` pattern when the fit grid is
+/// `n_e × n_a` (unreduced).
+fn output_scene(fit: &Scene, n: (usize, usize), reduced: (usize, usize), size: (u32, u32), prep: Option<&crate::prep::Prepared>) -> Scene {
+    let (n_e, n_a) = n;
+    let (re, ra) = reduced;
+    let fx = n_a as f32 / ra as f32;
+    let fy = n_e as f32 / re as f32;
+    let mut s = fit.clone();
+    s.width = size.0.max(8);
+    s.height = size.1.max(8);
+    match prep {
+        None => {
+            s.camera.tiles = fx;
+            s.camera.offset = [0.5 * fx, 0.5 * fy];
+        }
+        Some(p) => {
+            // One repeat of the fit grid spans `crop.w` pixels of the rectified image.
+            let tiles_fit = s.width as f32 / p.crop.w.max(1) as f32;
+            s.camera.tiles = (tiles_fit * fx).clamp(0.25, 64.0);
+            // World x = 0 at crop.x; world y = ty at crop.y (image rows run downwards).
+            let cx = (s.width as f32 / 2.0 - p.crop.x as f32) / p.crop.w.max(1) as f32;
+            let cy = 1.0 - (s.height as f32 / 2.0 - p.crop.y as f32) / p.crop.h.max(1) as f32;
+            s.camera.offset = [(cx * fx).clamp(-1e4, 1e4), (cy * fy).clamp(-1e4, 1e4)];
+        }
+    }
+    s.spp = s.spp.max(16);
+    s
+}
+
+/// Fit cloth parameters to `input` (linear RGB). See the module docs.
+pub fn fit(input: &Image, opts: &FitOptions) -> Result<FitResult> {
+    check_input(input)?;
+    if opts.px_per_cell < 2 || opts.pre_px_per_cell < 2 || opts.spp == 0 || opts.pre_spp == 0 {
+        bail!("px_per_cell must be ≥ 2 and spp ≥ 1");
+    }
+    crate::render::run_in_pool(opts.threads, || fit_inner(input, opts))
+}
+
+fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
+    let t_start = Instant::now();
+    let mut warnings = Vec::new();
+    let stop = &*opts.stop;
+
+    // 1. Target: the minimum-pattern crop.
+    let (crop, prep, mut grid) = if opts.prep {
+        let p = crate::prep::prepare(&input.to_rgb32f(), &crate::prep::PrepOptions::default())
+            .context("preparing the input (use --no-prep for a clean one-repeat crop)")?;
+        let reg = Image::from_rgb32f(&p.regularized);
+        let crop = crate::cli::crop(&reg, p.crop.x, p.crop.y, p.crop.w, p.crop.h);
+        let g = (p.n_e, p.n_a);
+        (crop, Some(p), Some(g))
+    } else {
+        (input.clone(), None, opts.grid)
+    };
+    if let Some(p) = &opts.pattern {
+        if let Some(g) = grid {
+            if g != (p.n_e(), p.n_a()) && opts.prep {
+                warnings.push(format!(
+                    "--pattern is {}×{} but prep found a {}×{} grid; using the pattern's grid",
+                    p.n_e(),
+                    p.n_a(),
+                    g.0,
+                    g.1
+                ));
+            }
+        }
+        grid = Some((p.n_e(), p.n_a()));
+    }
+    let (n_e, n_a) = match grid {
+        Some(g) => g,
+        None => target::detect_grid(&crop).context(
+            "cannot detect the yarn grid of the input; pass --grid NExNA or --pattern, or run with prep",
+        )?,
+    };
+    if n_e == 0 || n_a == 0 || n_e > crate::pattern::MAX_SIDE || n_a > crate::pattern::MAX_SIDE {
+        bail!("grid {n_e}×{n_a} is outside 1..={}", crate::pattern::MAX_SIDE);
+    }
+    let c = opts.px_per_cell;
+    let tgt = resample(&crop, n_a as u32 * c, n_e as u32 * c);
+    let scene = fit_scene(n_e, n_a, c, opts.spp, opts.seed, &opts.lights);
+    let ev = Evaluator::new(scene.clone(), tgt.clone());
+    let t_prep = t_start.elapsed().as_secs_f64();
+
+    // 2. Pre-estimation.
+    let pattern0 = match &opts.pattern {
+        Some(p) => unreduced(p),
+        None => default_twill(n_e, n_a),
+    };
+    let mut cloth =
+        ClothParams { pattern: pattern0, n_p: 3, n_f: 30, r_e: 4.0, r_a: 4.0, appearance: grey_appearance() };
+    let mut pre_uphill = Vec::new();
+    if opts.pre_estimate {
+        let cp = opts.pre_px_per_cell;
+        let pre_scene = fit_scene(n_e, n_a, cp, opts.pre_spp, opts.seed, &opts.lights);
+        let pre_ev = Evaluator::new(pre_scene, resample(&crop, n_a as u32 * cp, n_e as u32 * cp));
+        if opts.pattern.is_none() {
+            greedy_sweeps(&pre_ev, &mut cloth, opts.max_sweeps, stop);
+        }
+        match opts.model.as_ref().filter(|m| m.exists()) {
+            Some(m) => match crate::net::PreEstimator::load(m) {
+                Ok(net) => match net.predict(&input.to_rgb32f()) {
+                    Ok(pred) => apply_network(&mut cloth, &pred),
+                    Err(e) => warnings.push(format!("pre-estimator failed on the input ({e}); using defaults")),
+                },
+                Err(e) => warnings.push(format!("cannot load pre-estimator {} ({e}); using defaults", m.display())),
+            },
+            None => warnings.push(format!(
+                "no pre-estimator model at {}; the parameters the network would estimate start from defaults",
+                opts.model.as_ref().map_or("(none)".into(), |m| m.display().to_string())
+            )),
+        }
+        estimate_colours(&pre_ev, &mut cloth, cp);
+        if opts.pattern.is_none() {
+            pre_uphill = greedy_sweeps(&pre_ev, &mut cloth, opts.max_sweeps, stop);
+            estimate_colours(&pre_ev, &mut cloth, cp);
+        }
+        ev.retraces.set(ev.retraces.get() + pre_ev.retraces.get());
+    }
+    let _ = pre_uphill;
+    let pre_pattern = cloth.pattern.clone();
+    let initial = cloth.clone();
+    let t_pre = t_start.elapsed().as_secs_f64() - t_prep;
+
+    // 3. Joint optimization.
+    let mut rng = StdRng::seed_from_u64(opts.seed ^ 0x5EED_F17);
+    let cells = opts.pattern.is_none();
+    let n_iter = opts.iterations;
+    let (anneal_iters, grad_from) = match opts.mode {
+        FitMode::Joint => (n_iter, 0),
+        FitMode::Separate => (n_iter / 2, n_iter / 2),
+    };
+    let mut x = cloth.appearance.to_vec();
+    let mut radii = [cloth.r_e, cloth.r_a];
+    let mut adam = Adam::new(N_APPEARANCE);
+    let mut adam_r = Adam::new(2);
+    let spans: Vec<f32> = APPEARANCE_RANGES.iter().map(|r| r.max - r.min).collect();
+    let rspan = crate::params::RADIUS_RANGE.1 - crate::params::RADIUS_RANGE.0;
+
+    let mut cache = ev.record(&cloth);
+    let mut cur_mse = ev.mse_of(&cache.shade(&cloth.appearance));
+    let mut best = (total_loss(cur_mse, &x), cloth.clone());
+
+    // Energy scale: median uphill ΔMSE of a few proposals from the start ↦ T0·ln 2.
+    let energy_scale = match opts.energy_scale {
+        Some(k) => k,
+        None => {
+            let mut ups = Vec::new();
+            for _ in 0..8 {
+                let (cand, _) = propose(&mut rng, &cloth, cells);
+                let cc = ev.record(&cand);
+                let l = ev.mse_of(&cc.shade(&cand.appearance));
+                if l > cur_mse {
+                    ups.push((l - cur_mse) as f64);
+                } else if l < cur_mse {
+                    cloth = cand;
+                    cache = cc;
+                    cur_mse = l;
+                }
+            }
+            ups.sort_by(f64::total_cmp);
+            match ups.get(ups.len() / 2) {
+                Some(&m) if m > 0.0 => opts.t0 * std::f64::consts::LN_2 / m,
+                _ => 1e5,
+            }
+        }
+    };
+    if total_loss(cur_mse, &x) < best.0 {
+        best = (total_loss(cur_mse, &x), cloth.clone());
+    }
+
+    let pb = if opts.progress {
+        let pb = indicatif::ProgressBar::new(n_iter as u64);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        pb
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut history = Vec::with_capacity(n_iter);
+    let ck_at: Vec<usize> = [0, n_iter / 8, n_iter / 4, n_iter / 2, 3 * n_iter / 4].to_vec();
+    let mut checkpoints = vec![Checkpoint { iter: 0, secs: t_start.elapsed().as_secs_f64(), cloth: best.1.clone() }];
+    let mut stale = false;
+    let mut stopped = false;
+    let mut returned = false;
+    for k in 0..n_iter {
+        if stop.load(Ordering::Relaxed) {
+            stopped = true;
+            break;
+        }
+        let do_anneal = k < anneal_iters;
+        let do_grad = k >= grad_from;
+        let stage = match opts.mode {
+            FitMode::Joint => "joint",
+            FitMode::Separate if do_anneal => "pattern",
+            FitMode::Separate => "appearance",
+        };
+        let radius_step = do_grad && opts.radius_every > 0 && k % opts.radius_every == 0;
+        cloth.appearance = Appearance::from_slice(&x);
+        cloth.r_e = radii[0];
+        cloth.r_a = radii[1];
+        if stale || radius_step {
+            cache = ev.record(&cloth);
+            stale = false;
+        }
+        // Gradient (and MSE) at the current state.
+        let (mut m, mut g) = cache.mse_and_gradient(&cloth.appearance, &ev.target);
+        cur_mse = m;
+        let mut loss = total_loss(m, &x);
+        if loss < best.0 {
+            best = (loss, cloth.clone());
+        }
+        // Discrete proposal.
+        let t = anneal::temperature(opts.t0, opts.decay, k);
+        let (mut prop, mut delta_e, mut accepted) = (String::new(), 0.0, false);
+        if do_anneal {
+            let (cand, desc) = propose(&mut rng, &cloth, cells);
+            let cc = ev.record(&cand);
+            let l = ev.mse_of(&cc.shade(&cand.appearance));
+            delta_e = energy_scale * (l - m) as f64;
+            accepted = anneal::metropolis_accept(delta_e, t, &mut rng);
+            prop = desc;
+            if accepted {
+                cloth = cand;
+                cache = cc;
+                if do_grad {
+                    (m, g) = cache.mse_and_gradient(&cloth.appearance, &ev.target);
+                } else {
+                    m = l;
+                }
+                cur_mse = m;
+                loss = total_loss(m, &x);
+                if loss < best.0 {
+                    best = (loss, cloth.clone());
+                }
+            }
+        }
+        // Continuous step.
+        if do_grad {
+            let frac = if n_iter > grad_from { (k - grad_from) as f32 / (n_iter - grad_from) as f32 } else { 0.0 };
+            let decay = 0.1f32.powf(frac);
+            let (_, gb) = anneal::appearance_barrier(&x);
+            let gt: Vec<f32> = g.iter().zip(gb.iter()).map(|(a, b)| a + b).collect();
+            let lr: Vec<f32> = spans.iter().map(|s| opts.lr * s * decay).collect();
+            adam.step(&mut x, &gt, &lr, &[true; N_APPEARANCE]);
+            for (v, r) in x.iter_mut().zip(APPEARANCE_RANGES) {
+                let span = r.max - r.min;
+                let lo = if r.min == 0.0 { 0.0 } else { r.min - 0.05 * span };
+                *v = v.clamp(lo, r.max + 0.05 * span);
+            }
+            if radius_step {
+                let h = 0.1f32;
+                let mut gr = [0.0f32; 2];
+                for (q, grq) in gr.iter_mut().enumerate() {
+                    let mut lp = [0.0f32; 2];
+                    for (s, lps) in [h, -h].iter().zip(lp.iter_mut()) {
+                        let mut cc = cloth.clone();
+                        let r = if q == 0 { &mut cc.r_e } else { &mut cc.r_a };
+                        *r = (*r + s).clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
+                        *lps = ev.mse_of(&ev.record(&cc).shade(&cc.appearance));
+                    }
+                    let r0 = radii[q];
+                    let hh = (r0 + h).min(crate::params::RADIUS_RANGE.1) - (r0 - h).max(crate::params::RADIUS_RANGE.0);
+                    *grq = (lp[0] - lp[1]) / hh.max(1e-6)
+                        + anneal::barrier_grad(r0, crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1, BARRIER_LAMBDA);
+                }
+                let lr = [opts.lr * rspan * decay; 2];
+                adam_r.step(&mut radii, &gr, &lr, &[true; 2]);
+                radii = radii.map(|r| r.clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1));
+                stale = true;
+            }
+        }
+        // Return to the best state once, three quarters through (the tail refines it).
+        if !returned && k + 1 == (3 * n_iter) / 4 && opts.mode == FitMode::Joint {
+            returned = true;
+            if best.0 < loss {
+                cloth = best.1.clone();
+                x = cloth.appearance.to_vec();
+                radii = [cloth.r_e, cloth.r_a];
+                stale = true;
+            }
+        }
+        let log = IterLog {
+            iter: k,
+            stage,
+            temperature: t,
+            mse: cur_mse,
+            loss,
+            best_loss: best.0,
+            proposal: prop,
+            delta_e,
+            accepted,
+            n_p: cloth.n_p,
+            n_f: cloth.n_f,
+            r_e: cloth.r_e,
+            r_a: cloth.r_a,
+            appearance: cloth.appearance.to_vec().to_vec(),
+            pattern: cloth.pattern.to_string(),
+            secs: t_start.elapsed().as_secs_f64(),
+        };
+        if let Some(cb) = &opts.on_iter {
+            cb(&log);
+        }
+        pb.set_position(k as u64 + 1);
+        pb.set_message(format!("loss {:.3e} best {:.3e} T {:.2}", loss, best.0, t));
+        history.push(log);
+        if ck_at.contains(&(k + 1)) {
+            checkpoints.push(Checkpoint { iter: k + 1, secs: t_start.elapsed().as_secs_f64(), cloth: best.1.clone() });
+        }
+    }
+    pb.finish_and_clear();
+    if !stopped && stop.load(Ordering::Relaxed) {
+        stopped = true;
+    }
+
+    // Polish: greedy pass over cells (and n_p) with the best appearance.
+    let mut best_cloth = best.1.clone();
+    if opts.polish && !stopped && n_iter > 0 {
+        let mut cur = ev.mse_of(&ev.render(&best_cloth));
+        if cells {
+            'outer: for i in 0..n_e {
+                for j in 0..n_a {
+                    if stop.load(Ordering::Relaxed) {
+                        break 'outer;
+                    }
+                    let mut c2 = best_cloth.clone();
+                    c2.pattern = best_cloth.pattern.toggled(i, j);
+                    let l = ev.mse_of(&ev.render(&c2));
+                    if l < cur {
+                        cur = l;
+                        best_cloth = c2;
+                    }
+                }
+            }
+        }
+    }
+    checkpoints.push(Checkpoint { iter: history.len(), secs: t_start.elapsed().as_secs_f64(), cloth: best_cloth.clone() });
+    let t_opt = t_start.elapsed().as_secs_f64() - t_prep - t_pre;
+
+    // Final render of the best state.
+    let best_cloth = clamp_ranges(&best_cloth);
+    let mut final_scene = scene.clone();
+    final_scene.spp = opts.final_spp.max(1);
+    final_scene.seed = opts.seed.wrapping_add(7);
+    let render = Prepared::new(&best_cloth, &final_scene, &RenderOptions::default()).render(&best_cloth.appearance);
+    let psnr_db = render.psnr_srgb(&tgt);
+    let reduced = best_cloth.pattern.reduced();
+    let mut out_cloth = best_cloth.clone();
+    out_cloth.pattern = reduced.clone();
+    let out_scene =
+        output_scene(&scene, (n_e, n_a), (reduced.n_e(), reduced.n_a()), (input.width, input.height), prep.as_ref());
+    let params = ParamFile { cloth: out_cloth, scene: out_scene };
+    params.validate().context("fitted parameter file does not validate")?;
+    let total = t_start.elapsed().as_secs_f64();
+    Ok(FitResult {
+        params,
+        cloth: best_cloth,
+        fit_scene: scene,
+        target: tgt,
+        render,
+        psnr_db,
+        best_loss: best.0,
+        pre_pattern,
+        initial,
+        history,
+        checkpoints,
+        energy_scale,
+        stopped,
+        prep,
+        warnings,
+        timings: [t_prep, t_pre, t_opt, total],
+        retraces: ev.retraces.get(),
+    })
+}
+
+impl std::fmt::Debug for FitResult {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FitResult")
+            .field("pattern", &self.params.cloth.pattern)
+            .field("psnr_db", &self.psnr_db)
+            .field("best_loss", &self.best_loss)
+            .field("iterations", &self.history.len())
+            .field("stopped", &self.stopped)
+            .finish_non_exhaustive()
+    }
+}

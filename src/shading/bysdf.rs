@@ -199,7 +199,11 @@ pub fn eval<T: Real>(
     let shadow = shadow_factor(p.g_p, ao_p) * shadow_factor(p.g_f, ao_f);
     let body = if same_side {
         // Eq. (3): m_r·G_p·G_f·R^B·[LS + 1/π], as a per-point mix (ambiguity 9) so its albedo ≤ 1.
-        let w = ((cv + cl) * 0.5).clamp(0.0, 1.0);
+        // Diffusion dominates where light and view are head-on (deep penetration, multiple
+        // scattering); Lommel–Seeliger single scattering takes over towards grazing, where it gives its
+        // characteristic brightening. (The reference code weights the other way round, which makes a
+        // white yarn seen head-on 7× darker than a Lambertian one.)
+        let w = 1.0 - ((cv + cl) * 0.5).clamp(0.0, 1.0);
         let ls = 1.0 / (4.0 * PI * (cv + cl));
         std::array::from_fn(|k| {
             let lobe = p.r_b[fam][k] * ((1.0 - w) / PI) + p.albedo_ls[fam][k] * (w * ls);
