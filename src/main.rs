@@ -89,6 +89,8 @@ enum Cmd {
         #[arg(long)]
         no_perspective: bool,
     },
+    /// Render the synthetic training set (resumable, shardable, deterministic).
+    Generate(woven::datagen::GenerateArgs),
     /// Train the pre-estimator network on a dataset from `woven generate`.
     Train(woven::pre::TrainArgs),
     /// Predict pattern class and parameters of an image with the pre-estimator.
@@ -130,6 +132,7 @@ fn main() -> Result<()> {
         }
         Cmd::Demo { out, size, spp } => cli::demo(&out, size, spp),
         Cmd::Prep { image, out, no_perspective } => cli::prep(&image, &out, no_perspective).map(|_| ()),
+        Cmd::Generate(a) => woven::datagen::run(&a),
         Cmd::Train(a) => woven::pre::run_train(&a),
         Cmd::Predict(a) => woven::pre::run_predict(&a),
         Cmd::Bench { out, quick } => woven::bench::run(&out, quick),

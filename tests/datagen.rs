@@ -382,3 +382,32 @@ fn measure_speed_and_noise() {
         100.0 * e64 / m
     );
 }
+
+#[test]
+fn command_entry_point_and_shard_parsing() {
+    use woven::datagen::cmd::parse_shard;
+    assert_eq!(parse_shard("1/4"), Ok((1, 4)));
+    assert!(parse_shard("4/4").is_err() && parse_shard("0/0").is_err() && parse_shard("x").is_err());
+    let d = tempfile::tempdir().unwrap();
+    let recipe = d.path().join("recipe.toml");
+    std::fs::write(&recipe, tiny().to_toml()).unwrap();
+    let args = woven::datagen::GenerateArgs {
+        count: Some(3),
+        out: d.path().join("set"),
+        recipe: recipe.clone(),
+        size: Some(24),
+        seed: None,
+        shard: None,
+        exr: true,
+        threads: Some(2),
+    };
+    woven::datagen::run(&args).unwrap();
+    let m: Manifest = serde_json::from_slice(&std::fs::read(d.path().join("set/manifest.json")).unwrap()).unwrap();
+    assert_eq!((m.count, m.image_size, m.exr), (3, 24, true));
+    let exr = woven::Image::load(&d.path().join("set/images/000002.exr"), 8).unwrap();
+    assert_eq!(exr.width, 24);
+    // A bad recipe file fails with the field named.
+    std::fs::write(&recipe, tiny().to_toml().replace("random_share = 0.2", "random_share = 2.0")).unwrap();
+    let e = format!("{:#}", woven::datagen::run(&args).unwrap_err());
+    assert!(e.contains("patterns.random_share"), "{e}");
+}

@@ -24,8 +24,7 @@ fn register_font() {
     });
 }
 
-/// Scale an image by an integer factor: box-average down (`factor < 0` means 1/|factor|) or
-/// nearest-neighbour up.
+/// Resample to `side × side`: box average over each target pixel's footprint (nearest when enlarging).
 fn rescale(img: &RgbImage, side: u32) -> RgbImage {
     let (w, h) = img.dimensions();
     if w == side && h == side {

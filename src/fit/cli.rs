@@ -241,7 +241,7 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     }
     opts.prep = false;
     opts.progress = true;
-    let target = synthetic_target(&truth, opts.px_per_cell, 16, 9_999, opts.threads);
+    let target = synthetic_target(&truth, opts.px_per_cell, 64, 9_999, opts.threads);
     std::fs::create_dir_all(out_dir)?;
     target.save_png(&out_dir.join("target.png"))?;
     let res = fit(&target, &opts)?;
@@ -476,7 +476,7 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
             Ablation::NoPre => opts.pre_estimate = false,
             Ablation::Separate => opts.mode = FitMode::Separate,
         }
-        let target = synthetic_target(&truth, args.px_per_cell, 16, 50_000 + i as u64, args.threads);
+        let target = synthetic_target(&truth, args.px_per_cell, 32, 50_000 + i as u64, args.threads);
         let grid_ok;
         if args.known_grid {
             opts.grid = Some((truth.pattern.n_e(), truth.pattern.n_a()));

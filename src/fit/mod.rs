@@ -31,7 +31,7 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
-use target::{fit_scene, mse, resample};
+use target::{fit_scene, resample};
 
 /// Smallest accepted input side in pixels.
 pub const MIN_INPUT_SIDE: u32 = 16;
@@ -74,6 +74,8 @@ pub struct FitOptions {
     pub pre_spp: u32,
     /// Samples per pixel of the final render.
     pub final_spp: u32,
+    /// Block size of the loss's box filter (pixels; 1 = per-pixel).
+    pub loss_block: u32,
     /// Maximum greedy sweeps of the pattern pre-estimation.
     pub max_sweeps: usize,
     /// Adam step size as a fraction of each parameter's range.
@@ -119,6 +121,7 @@ impl Default for FitOptions {
             pre_spp: 2,
             final_spp: 16,
             max_sweeps: 4,
+            loss_block: 2,
             lr: 0.03,
             radius_every: 4,
             t0: anneal::T0,
@@ -139,7 +142,7 @@ impl Default for FitOptions {
 impl FitOptions {
     /// Fast settings (tests, demo, eval): smaller renders, fewer iterations.
     pub fn fast() -> Self {
-        FitOptions { iterations: 120, px_per_cell: 10, spp: 4, pre_px_per_cell: 8, pre_spp: 2, final_spp: 8, ..Default::default() }
+        FitOptions { iterations: 120, px_per_cell: 10, spp: 4, pre_px_per_cell: 8, pre_spp: 4, final_spp: 16, ..Default::default() }
     }
 }
 
@@ -245,7 +248,12 @@ pub fn grey_appearance() -> Appearance {
 /// Default twill (2/2, diagonal `(i + j) mod 4 < 2`) on an `n_e × n_a` grid, unreduced.
 pub fn default_twill(n_e: usize, n_a: usize) -> WeavePattern {
     let rows: Vec<Vec<bool>> = (0..n_e).map(|i| (0..n_a).map(|j| (i + j) % 4 < 2).collect()).collect();
-    WeavePattern::from_rows_unreduced(&rows).expect("grid within limits")
+    let p = WeavePattern::from_rows_unreduced(&rows).expect("grid within limits");
+    if p.has_unbound_yarn() {
+        let rows: Vec<Vec<bool>> = (0..n_e).map(|i| (0..n_a).map(|j| (i + j) % 2 == 0).collect()).collect();
+        return WeavePattern::from_rows_unreduced(&rows).expect("grid within limits");
+    }
+    p
 }
 
 fn unreduced(p: &WeavePattern) -> WeavePattern {
@@ -265,17 +273,38 @@ pub fn check_input(img: &Image) -> Result<()> {
     Ok(())
 }
 
-/// Renders a cloth against a fixed target.
+/// Renders a cloth against a fixed target. The loss compares images clamped to [0, 1] (display
+/// range: bright gaps seeing the back light are ~5 in linear units and binary per sample) and
+/// averaged over `b × b` pixel blocks, which divides the Monte Carlo variance by `b²` while keeping
+/// the cell structure (cells are ≥ 8 px).
 struct Evaluator {
     scene: Scene,
     target: Image,
+    target_f: Vec<[f32; 3]>,
+    b: u32,
     opts: RenderOptions,
     retraces: std::cell::Cell<usize>,
 }
 
+fn block_filter(img: &Image, b: u32) -> Vec<[f32; 3]> {
+    let (bw, bh) = (img.width / b, img.height / b);
+    let inv = 1.0 / (b * b) as f32;
+    let mut out = vec![[0.0f32; 3]; (bw * bh) as usize];
+    for y in 0..bh * b {
+        for x in 0..bw * b {
+            let p = img.get(x, y);
+            let o = &mut out[((y / b) * bw + x / b) as usize];
+            (0..3).for_each(|k| o[k] += p[k].clamp(0.0, 1.0) * inv);
+        }
+    }
+    out
+}
+
 impl Evaluator {
-    fn new(scene: Scene, target: Image) -> Self {
-        Evaluator { scene, target, opts: RenderOptions::default(), retraces: std::cell::Cell::new(0) }
+    fn new(scene: Scene, target: Image, b: u32) -> Self {
+        let b = b.max(1);
+        let target_f = block_filter(&target, b);
+        Evaluator { scene, target, target_f, b, opts: RenderOptions::default(), retraces: std::cell::Cell::new(0) }
     }
     fn record(&self, cloth: &ClothParams) -> PathCache {
         self.retraces.set(self.retraces.get() + 1);
@@ -285,32 +314,76 @@ impl Evaluator {
         self.retraces.set(self.retraces.get() + 1);
         Prepared::new(cloth, &self.scene, &self.opts).render(&cloth.appearance)
     }
+    /// Loss of a rendered image.
     fn mse_of(&self, img: &Image) -> f32 {
-        mse(img, &self.target)
+        let f = block_filter(img, self.b);
+        let n = (f.len() * 3).max(1) as f32;
+        f.iter().zip(&self.target_f).map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()).sum::<f32>() / n
+    }
+    /// Loss and its exact gradient w.r.t. the appearance vector.
+    fn loss_grad(&self, cache: &PathCache, a: &Appearance) -> (f32, [f32; N_APPEARANCE]) {
+        let px = cache.shade_with_derivatives(a);
+        let (w, h) = cache.size();
+        let b = self.b;
+        let (bw, bh) = (w / b, h / b);
+        let inv = 1.0 / (b * b) as f32;
+        let mut acc = vec![[(0.0f32, [0.0f32; N_APPEARANCE]); 3]; (bw * bh) as usize];
+        for y in 0..bh * b {
+            for x in 0..bw * b {
+                let p = &px[(y * w + x) as usize];
+                let o = &mut acc[((y / b) * bw + x / b) as usize];
+                for k in 0..3 {
+                    let v = p[k].v;
+                    if v > 0.0 && v < 1.0 {
+                        o[k].0 += v * inv;
+                        o[k].1.iter_mut().zip(p[k].d.iter()).for_each(|(g, d)| *g += d * inv);
+                    } else {
+                        o[k].0 += v.clamp(0.0, 1.0) * inv;
+                    }
+                }
+            }
+        }
+        let n = (acc.len() * 3).max(1) as f32;
+        let mut loss = 0.0f32;
+        let mut g = [0.0f32; N_APPEARANCE];
+        for (o, t) in acc.iter().zip(&self.target_f) {
+            for k in 0..3 {
+                let e = o[k].0 - t[k];
+                loss += e * e;
+                g.iter_mut().zip(o[k].1.iter()).for_each(|(gi, di)| *gi += 2.0 * e * di);
+            }
+        }
+        (loss / n, g.map(|x| x / n))
     }
 }
 
-/// Greedy pattern sweeps at temperature 0: toggle each cell, keep it when the MSE drops; repeat
-/// until a sweep changes nothing. Returns the pattern and the uphill MSE changes seen.
-fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, max_sweeps: usize, stop: &AtomicBool) -> Vec<f32> {
-    let mut uphill = Vec::new();
-    let mut cur = ev.mse_of(&ev.render(cloth));
+/// Greedy pattern sweeps at temperature 0: toggle each cell, keep it when the loss drops; repeat
+/// until a sweep changes nothing. Every candidate pattern gets its own colour pre-estimate (from the
+/// same recorded paths), so the sweep compares structure, not a grey guess against coloured yarns.
+fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, c: u32, max_sweeps: usize, stop: &AtomicBool) {
+    let eval = |cand: &mut ClothParams| -> f32 {
+        let cache = ev.record(cand);
+        fit_colours(ev, cand, &cache, c);
+        ev.mse_of(&cache.shade(&cand.appearance))
+    };
+    let mut cur = eval(cloth);
     for _ in 0..max_sweeps {
         let mut changed = false;
         for i in 0..cloth.pattern.n_e() {
             for j in 0..cloth.pattern.n_a() {
                 if stop.load(Ordering::Relaxed) {
-                    return uphill;
+                    return;
                 }
-                let mut c = cloth.clone();
-                c.pattern = cloth.pattern.toggled(i, j);
-                let l = ev.mse_of(&ev.render(&c));
+                let mut cand = cloth.clone();
+                cand.pattern = cloth.pattern.toggled(i, j);
+                if cand.pattern.has_unbound_yarn() && !cloth.pattern.has_unbound_yarn() {
+                    continue;
+                }
+                let l = eval(&mut cand);
                 if l < cur {
-                    *cloth = c;
+                    *cloth = cand;
                     cur = l;
                     changed = true;
-                } else {
-                    uphill.push(l - cur);
                 }
             }
         }
@@ -318,17 +391,15 @@ fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, max_sweeps: usize, sto
             break;
         }
     }
-    uphill
 }
 
 /// Colour pre-estimation (paper §5.2) converted into `R^B` through the renderer: per channel a
-/// two-point affine fit of the rendered cell means against `R^B` (the cache re-shades, no
+/// two-point affine fit of the rendered cell means against `R^B` (re-shading recorded paths, no
 /// re-trace); specular colour from the top-10% pixels, converted the same way.
-fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) {
+fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32) {
     let p = cloth.pattern.clone();
     let t = &ev.target;
     let (me, ma) = (target::yarn_mean(t, &p, c, true, 0.1), target::yarn_mean(t, &p, c, false, 0.1));
-    let cache = ev.record(cloth);
     let with_body = |v: f32| {
         let mut a = cloth.appearance.clone();
         a.r_b_e = [v; 3];
@@ -360,15 +431,27 @@ fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) {
         cloth.appearance.r_b_a = solve(m, r0, r1);
         cloth.appearance.s_b_a = cloth.appearance.r_b_a;
     }
-    // Specular colour from the brightest 10 %.
+}
+
+/// Full colour pre-estimation: body colours, then the specular colour from the top-10% pixels.
+fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) {
+    let cache = ev.record(cloth);
+    fit_colours(ev, cloth, &cache, c);
+    let (lo, hi) = (0.2f32, 0.8f32);
     let with_spec = |v: f32| {
         let mut a = cloth.appearance.clone();
         a.r_s = [v; 3];
         a
     };
-    let m = target::top_mean(t, 0.1);
-    let (s0, s1) = (target::top_mean(&cache.shade(&with_spec(lo)), 0.1), target::top_mean(&cache.shade(&with_spec(hi)), 0.1));
-    cloth.appearance.r_s = solve(m, s0, s1);
+    let m = target::top_mean(&ev.target, 0.1);
+    let (s0, s1) =
+        (target::top_mean(&cache.shade(&with_spec(lo)), 0.1), target::top_mean(&cache.shade(&with_spec(hi)), 0.1));
+    for k in 0..3 {
+        let slope = (s1[k] - s0[k]) / (hi - lo);
+        let v = if slope.abs() > 1e-6 { lo + (m[k] - s0[k]) / slope } else { 0.5 };
+        cloth.appearance.r_s[k] = v.clamp(0.0, 1.0);
+    }
+    fit_colours(ev, cloth, &cache, c);
 }
 
 /// Apply a pre-estimator prediction (everything but the pattern and the analytic colours).
@@ -404,10 +487,16 @@ fn propose(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> (ClothParams, 
     let mut c = cloth.clone();
     let r: f32 = rng.random();
     if cells && r < 0.8 {
-        let i = rng.random_range(0..cloth.pattern.n_e());
-        let j = rng.random_range(0..cloth.pattern.n_a());
-        c.pattern = cloth.pattern.toggled(i, j);
-        return (c, format!("cell {i},{j}"));
+        // A toggle that leaves a yarn floating over the whole repeat is redrawn (not a weave).
+        for _ in 0..32 {
+            let i = rng.random_range(0..cloth.pattern.n_e());
+            let j = rng.random_range(0..cloth.pattern.n_a());
+            c.pattern = cloth.pattern.toggled(i, j);
+            if !c.pattern.has_unbound_yarn() || cloth.pattern.has_unbound_yarn() {
+                return (c, format!("cell {i},{j}"));
+            }
+        }
+        c.pattern = cloth.pattern.clone();
     }
     if (cells && r < 0.9) || (!cells && r < 0.5) {
         let up = if cloth.n_p <= NP_RANGE.0 { true } else if cloth.n_p >= NP_RANGE.1 { false } else { rng.random() };
@@ -519,7 +608,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     let c = opts.px_per_cell;
     let tgt = resample(&crop, n_a as u32 * c, n_e as u32 * c);
     let scene = fit_scene(n_e, n_a, c, opts.spp, opts.seed, &opts.lights);
-    let ev = Evaluator::new(scene.clone(), tgt.clone());
+    let ev = Evaluator::new(scene.clone(), tgt.clone(), opts.loss_block);
     let t_prep = t_start.elapsed().as_secs_f64();
 
     // 2. Pre-estimation.
@@ -529,13 +618,12 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     };
     let mut cloth =
         ClothParams { pattern: pattern0, n_p: 3, n_f: 30, r_e: 4.0, r_a: 4.0, appearance: grey_appearance() };
-    let mut pre_uphill = Vec::new();
     if opts.pre_estimate {
         let cp = opts.pre_px_per_cell;
         let pre_scene = fit_scene(n_e, n_a, cp, opts.pre_spp, opts.seed, &opts.lights);
-        let pre_ev = Evaluator::new(pre_scene, resample(&crop, n_a as u32 * cp, n_e as u32 * cp));
+        let pre_ev = Evaluator::new(pre_scene, resample(&crop, n_a as u32 * cp, n_e as u32 * cp), opts.loss_block);
         if opts.pattern.is_none() {
-            greedy_sweeps(&pre_ev, &mut cloth, opts.max_sweeps, stop);
+            greedy_sweeps(&pre_ev, &mut cloth, cp, opts.max_sweeps, stop);
         }
         match opts.model.as_ref().filter(|m| m.exists()) {
             Some(m) => match crate::net::PreEstimator::load(m) {
@@ -552,12 +640,11 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         }
         estimate_colours(&pre_ev, &mut cloth, cp);
         if opts.pattern.is_none() {
-            pre_uphill = greedy_sweeps(&pre_ev, &mut cloth, opts.max_sweeps, stop);
+            greedy_sweeps(&pre_ev, &mut cloth, cp, opts.max_sweeps, stop);
             estimate_colours(&pre_ev, &mut cloth, cp);
         }
         ev.retraces.set(ev.retraces.get() + pre_ev.retraces.get());
     }
-    let _ = pre_uphill;
     let pre_pattern = cloth.pattern.clone();
     let initial = cloth.clone();
     let t_pre = t_start.elapsed().as_secs_f64() - t_prep;
@@ -646,7 +733,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             stale = false;
         }
         // Gradient (and MSE) at the current state.
-        let (mut m, mut g) = cache.mse_and_gradient(&cloth.appearance, &ev.target);
+        let (mut m, mut g) = ev.loss_grad(&cache, &cloth.appearance);
         cur_mse = m;
         let mut loss = total_loss(m, &x);
         if loss < best.0 {
@@ -666,7 +753,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
                 cloth = cand;
                 cache = cc;
                 if do_grad {
-                    (m, g) = cache.mse_and_gradient(&cloth.appearance, &ev.target);
+                    (m, g) = ev.loss_grad(&cache, &cloth.appearance);
                 } else {
                     m = l;
                 }
@@ -767,6 +854,9 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
                     }
                     let mut c2 = best_cloth.clone();
                     c2.pattern = best_cloth.pattern.toggled(i, j);
+                    if c2.pattern.has_unbound_yarn() && !best_cloth.pattern.has_unbound_yarn() {
+                        continue;
+                    }
                     let l = ev.mse_of(&ev.render(&c2));
                     if l < cur {
                         cur = l;

@@ -123,10 +123,11 @@ pub fn yarn_mean(img: &Image, p: &WeavePattern, c: u32, weft_on_top: bool, margi
     (n > 0).then(|| acc.map(|a| (a / n as f64) as f32))
 }
 
-/// Mean colour of the brightest `frac` of the pixels (by luminance).
+/// Mean colour of the brightest `frac` of the pixels (by luminance), values clamped to [0, 1].
 pub fn top_mean(img: &Image, frac: f32) -> [f32; 3] {
     let lum = |p: &[f32; 3]| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2];
-    let mut px: Vec<&[f32; 3]> = img.data.iter().collect();
+    let clamped: Vec<[f32; 3]> = img.data.iter().map(|p| p.map(|v| v.clamp(0.0, 1.0))).collect();
+    let mut px: Vec<&[f32; 3]> = clamped.iter().collect();
     px.sort_by(|a, b| lum(b).total_cmp(&lum(a)));
     let n = ((px.len() as f32 * frac).ceil() as usize).clamp(1, px.len());
     let mut acc = [0.0f32; 3];

@@ -163,8 +163,11 @@ fn search(d: &Disc, center: f64, half: f64, step: f64, both: bool) -> (f64, f64,
     (angles[k] + off * step, contrast, k, n)
 }
 
-/// Dominant yarn angle in degrees, in [−45, 45), and the Laplacian-of-Gaussian scale with the
-/// most distinct peak (see module docs). `g` is the grey input.
+/// Largest in-plane rotation (degrees) the angle search considers.
+pub const MAX_ANGLE: f64 = 30.0;
+
+/// Dominant yarn angle in degrees, in [−MAX_ANGLE, MAX_ANGLE], and the Laplacian-of-Gaussian scale
+/// with the most distinct peak (see module docs). `g` is the grey input.
 pub fn dominant_angle(g: &Gray) -> (f64, f32) {
     let (cx, cy) = ((g.w as f64 - 1.0) / 2.0, (g.h as f64 - 1.0) / 2.0);
     let r0 = (g.w.min(g.h) as f64 / 2.0 - 1.5).max(2.0);
@@ -173,7 +176,10 @@ pub fn dominant_angle(g: &Gray) -> (f64, f32) {
     let laps: Vec<Gray> = sigmas.iter().map(|&s| laplacian(&blur_gray(g, s))).collect();
     // Coarse: sum over scales of the Radon curves, each normalised by its mean.
     let coarse: Vec<Disc> = laps.iter().map(|l| disc(l, cx, cy, r0.min(128.0), 60_000)).collect();
-    let angles: Vec<f64> = (0..180).map(|i| -45.0 + 0.5 * i as f64).collect();
+    // Search yarn angles within ±MAX_ANGLE: a close-up is taken roughly aligned, and beyond ~30° the
+    // diagonals of plain and twill weaves (at 45° ± rotation) out-score the yarns themselves.
+    let steps = (2.0 * MAX_ANGLE / 0.5) as usize + 1;
+    let angles: Vec<f64> = (0..steps).map(|i| -MAX_ANGLE + 0.5 * i as f64).collect();
     let mut total = vec![0.0f64; angles.len()];
     let mut best_sigma = (0.0f64, sigmas[0]);
     for (d, &sigma) in coarse.iter().zip(&sigmas) {

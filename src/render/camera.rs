@@ -46,7 +46,10 @@ impl Camera {
         match self.projection {
             Projection::Orthographic => {
                 let on_plane = self.centre + self.right * (u * self.half_w) + self.up * (v * self.half_h);
-                (on_plane - self.forward * self.dist, self.forward)
+                // Start every ray above the cloth slab, whatever the tilt lifts or lowers its image
+                // point by (a fixed distance would start rays under the cloth at the frame's edge).
+                let t = (self.dist * (-self.forward.z).max(0.2) - on_plane.z) / (-self.forward.z).max(0.2);
+                (on_plane - self.forward * t, self.forward)
             }
             Projection::Perspective => {
                 let eye = self.centre - self.forward * self.dist;
@@ -80,5 +83,11 @@ mod tests {
         let hit = o + d * (-o.z / d.z);
         assert!(hit.truncate().length() < 1e-3, "centre ray lands at {hit}");
         assert!(d.z < 0.0);
+        // A tilted orthographic view starts every ray above the cloth (z_top = 8).
+        let spec = CameraSpec { tilt_deg: 30.0, tiles: 4.0, ..Default::default() };
+        let c = Camera::new(&spec, 64, 64, 20.0, 20.0, 8.0);
+        for (px, py) in [(0.0, 0.0), (64.0, 64.0), (0.0, 64.0), (64.0, 0.0)] {
+            assert!(c.ray(px, py).0.z > 8.0);
+        }
     }
 }
