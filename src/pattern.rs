@@ -300,6 +300,25 @@ mod tests {
     }
 
     #[test]
+    fn png_patterns_are_thresholded_and_reduced() {
+        let dir = std::env::temp_dir().join(format!("woven-pattern-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("logo.png");
+        // A 6×6 image repeating a 3×3 logo: bright = weft over.
+        let logo = [[1, 0, 0], [1, 1, 0], [0, 1, 1]];
+        let img = image::GrayImage::from_fn(6, 6, |x, y| {
+            image::Luma([if logo[y as usize % 3][x as usize % 3] == 1 { 230 } else { 20 }])
+        });
+        img.save(&path).unwrap();
+        let p = WeavePattern::from_spec(path.to_str().unwrap()).unwrap();
+        assert_eq!(p.to_string(), "100/110/011");
+        let big = image::GrayImage::from_fn(65, 2, |x, _| image::Luma([(x % 2 * 255) as u8]));
+        big.save(&path).unwrap();
+        assert!(matches!(WeavePattern::from_spec(path.to_str().unwrap()), Err(PatternError::TooLarge { .. })));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
     fn rotation_and_equivalence() {
         let t = WeavePattern::preset("twill31").unwrap();
         let r = t.rotated90();

@@ -101,8 +101,8 @@ fn cell_mapping_matches_the_renderer() {
 #[test]
 fn small_fit_recovers_pattern_and_colours() {
     let truth = two_colour_cloth("1100/0110/0011/1001");
-    let target = synthetic_target(&truth, 8, 32, 777, Some(2));
-    let opts = small_opts();
+    let target = synthetic_target(&truth, 10, 32, 777, Some(2));
+    let opts = FitOptions { iterations: 100, px_per_cell: 10, ..small_opts() };
     let res = fit(&target, &opts).unwrap();
     assert!(res.params.cloth.pattern.equivalent(&truth.pattern), "fit {} vs {}", res.params.cloth.pattern, truth.pattern);
     let a = &res.cloth.appearance;
@@ -165,7 +165,7 @@ fn bad_inputs_give_clear_errors() {
     let mut args = FitArgs::new(&png, dir.path().join("out"));
     args.pattern = Some("12/01".into());
     let e = format!("{:#}", run_fit(&args).unwrap_err());
-    assert!(e.contains("--pattern") && e.contains("non-binary"), "{e}");
+    assert!(e.contains("--pattern") && e.contains("12/01") && e.contains("unknown weave preset"), "{e}");
     // Bad grid.
     let mut args = FitArgs::new(&png, dir.path().join("out"));
     args.grid = Some("4by4".into());
