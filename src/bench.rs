@@ -22,7 +22,7 @@ pub fn replace_section(path: &Path, title: &str, body: &str) -> Result<()> {
             let end = rest.find("\n## ").map(|e| start + head.len() + e + 1).unwrap_or(old.len());
             format!("{}{}{}", &old[..start], section, &old[end..])
         }
-        None => format!("{}\n{}", old.trim_end(), format!("\n{section}")),
+        None => format!("{}\n\n{section}", old.trim_end()),
     };
     crate::io::write_atomic(path, new.as_bytes()).with_context(|| format!("writing {}", path.display()))
 }

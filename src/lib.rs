@@ -4,26 +4,29 @@
 //! appearance — from one close-up photo, and re-render it under any light and view.
 //!
 //! Modules follow the pipeline: [`params`] (Table 1) and [`pattern`]; the forward model in
-//! [`geometry`], [`shading`] and [`render`]; the scene in [`scene`].
+//! [`geometry`], [`shading`] and [`render`] with its [`scene`]; the synthetic training set in
+//! [`datagen`]; the pre-estimator network in [`net`] (glue in [`pre`]); photo preparation in
+//! [`prep`]; the reconstruction in [`fit`]. [`cli`], [`bench`] and [`stress`] back the `woven`
+//! commands.
 
+pub mod bench;
+pub mod cli;
+pub mod datagen;
+pub mod fit;
 pub mod geometry;
 pub mod image_io;
 pub mod io;
+pub mod net;
 pub mod params;
 pub mod pattern;
+pub mod pre;
+pub mod prep;
 pub mod render;
 pub mod scene;
 pub mod shading;
+pub mod stress;
 
 pub use image_io::Image;
 pub use params::{Appearance, ClothParams, ParamFile};
 pub use pattern::WeavePattern;
 pub use scene::Scene;
-pub mod bench;
-pub mod cli;
-pub mod net;
-pub mod stress;
-pub mod prep;
-pub mod datagen;
-pub mod fit;
-pub mod pre;

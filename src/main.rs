@@ -66,10 +66,20 @@ enum Cmd {
         #[arg(long)]
         threads: Option<usize>,
     },
-    /// Render the example scenes into a folder (the embedded-default job until `fit` lands).
+    /// Main job on the embedded default: render a synthetic target from hidden parameters, fit it
+    /// from scratch, print recovered vs true parameters and PSNR.
     Demo {
-        /// Output folder.
+        /// Output folder (target.png, fit.json, fit.png, compare.png, trace.png, log.jsonl).
         #[arg(long, default_value = "out/demo")]
+        out: PathBuf,
+        /// Longer, more accurate fit (more iterations and samples).
+        #[arg(long)]
+        full: bool,
+    },
+    /// Render the example scenes (plain, twill, satin × front, back, both lights) and a contact sheet.
+    Examples {
+        /// Output folder.
+        #[arg(long, default_value = "out/examples")]
         out: PathBuf,
         /// Image size.
         #[arg(long, default_value_t = 256)]
@@ -78,6 +88,16 @@ enum Cmd {
         #[arg(long, default_value_t = 16)]
         spp: u32,
     },
+    /// Reconstruct a photo: pattern, geometry and appearance parameters, re-render and comparisons.
+    Fit(woven::fit::cli::FitArgs),
+    /// Fit N random synthetic targets and report pattern accuracy, parameter error, PSNR and time.
+    Eval(woven::fit::cli::EvalArgs),
+    /// Render the synthetic training set (resumable, shardable, deterministic).
+    Generate(woven::datagen::GenerateArgs),
+    /// Train the pre-estimator network on a dataset from `woven generate`.
+    Train(woven::pre::TrainArgs),
+    /// Predict pattern class and parameters of an image with the pre-estimator.
+    Predict(woven::pre::PredictArgs),
     /// Prepare a photo: rectify, regularize, find the yarn grid and the minimum pattern.
     Prep {
         /// Photo (PNG, JPEG or EXR).
@@ -89,12 +109,6 @@ enum Cmd {
         #[arg(long)]
         no_perspective: bool,
     },
-    /// Render the synthetic training set (resumable, shardable, deterministic).
-    Generate(woven::datagen::GenerateArgs),
-    /// Train the pre-estimator network on a dataset from `woven generate`.
-    Train(woven::pre::TrainArgs),
-    /// Predict pattern class and parameters of an image with the pre-estimator.
-    Predict(woven::pre::PredictArgs),
     /// Forward-model benchmark: time vs error, threads, re-shading, skips. Writes markdown.
     Bench {
         /// Markdown output (appends/replaces the forward-model section).
@@ -130,7 +144,10 @@ fn main() -> Result<()> {
             cli::render_file(&params, &out, exr.as_deref(), &o, threads)
                 .with_context(|| format!("rendering {}", params.display()))
         }
-        Cmd::Demo { out, size, spp } => cli::demo(&out, size, spp),
+        Cmd::Demo { out, full } => woven::fit::cli::run_demo(&out, !full),
+        Cmd::Examples { out, size, spp } => cli::demo(&out, size, spp),
+        Cmd::Fit(a) => woven::fit::cli::run_fit(&a),
+        Cmd::Eval(a) => woven::fit::cli::run_eval(&a),
         Cmd::Prep { image, out, no_perspective } => cli::prep(&image, &out, no_perspective).map(|_| ()),
         Cmd::Generate(a) => woven::datagen::run(&a),
         Cmd::Train(a) => woven::pre::run_train(&a),

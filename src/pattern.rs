@@ -197,13 +197,13 @@ impl WeavePattern {
     pub fn reduced(&self) -> Self {
         let r = (1..=self.rows)
             .find(|&p| {
-                self.rows % p == 0
+                self.rows.is_multiple_of(p)
                     && (0..self.rows).all(|i| (0..self.cols).all(|j| self.get(i, j) == self.get(i + p, j)))
             })
             .unwrap_or(self.rows);
         let c = (1..=self.cols)
             .find(|&p| {
-                self.cols % p == 0
+                self.cols.is_multiple_of(p)
                     && (0..self.rows).all(|i| (0..self.cols).all(|j| self.get(i, j) == self.get(i, j + p)))
             })
             .unwrap_or(self.cols);

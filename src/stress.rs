@@ -192,7 +192,7 @@ pub fn stress(count: u64, seed: u64, progress: bool) -> StressReport {
     // Re-estimate the worst configuration with 100× the samples: the maximum of many noisy
     // estimates is biased upwards.
     if let Some((a, v, kind)) = &rep.max_config {
-        let mut rng = SmallRng::seed_from_u64(seed ^ 0xA1BE_D0);
+        let mut rng = SmallRng::seed_from_u64(seed ^ 0x00A1_BED0);
         let est = albedo(&ShadeParams::new(a), *kind, Family::Weft, *v, (1.0, 1.0), 200_000, &mut rng);
         let k = (0..3).max_by(|&i, &j| est.mean[i].total_cmp(&est.mean[j])).unwrap_or(0);
         rep.refined_max = Some((est.mean[k], est.stderr[k]));

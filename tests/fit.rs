@@ -51,8 +51,8 @@ fn metropolis_rule_statistics() {
     // Uphill at T = 0: never.
     assert!((0..1000).all(|_| !metropolis_accept(1e-6, 0.0, &mut rng)));
     // Uphill: frequency matches exp(-Δ/T) within 4 sigma.
-    for (d, t) in [(69.31, 100.0), (10.0, 5.0), (1.0, 10.0), (300.0, 100.0)] {
-        let p = (-(d as f64) / t).exp();
+    for (d, t) in [(69.31f64, 100.0f64), (10.0, 5.0), (1.0, 10.0), (300.0, 100.0)] {
+        let p = (-d / t).exp();
         assert!((acceptance_probability(d, t) - p).abs() < 1e-12);
         let n = 20_000;
         let k = (0..n).filter(|_| metropolis_accept(d, t, &mut rng)).count() as f64;
@@ -104,7 +104,12 @@ fn small_fit_recovers_pattern_and_colours() {
     let target = synthetic_target(&truth, 10, 32, 777, Some(2));
     let opts = FitOptions { iterations: 100, px_per_cell: 10, ..small_opts() };
     let res = fit(&target, &opts).unwrap();
-    assert!(res.params.cloth.pattern.equivalent(&truth.pattern), "fit {} vs {}", res.params.cloth.pattern, truth.pattern);
+    assert!(
+        res.params.cloth.pattern.equivalent(&truth.pattern),
+        "fit {} vs {}",
+        res.params.cloth.pattern,
+        truth.pattern
+    );
     let a = &res.cloth.appearance;
     // Weft red-dominant, warp blue-dominant, roughly the right values.
     assert!(a.r_b_e[0] > a.r_b_e[2] + 0.3, "r_b_e {:?}", a.r_b_e);
@@ -184,38 +189,7 @@ fn demo_run() {
 
 #[test]
 #[ignore]
-fn debug_small() {
-    let truth = two_colour_cloth("1100/0110/0011/1001");
-    let target = synthetic_target(&truth, 8, 32, 777, Some(2));
-    let opts = small_opts();
-    let res = fit(&target, &opts).unwrap();
-    println!("pre {} init {:?}", res.pre_pattern, res.initial.appearance.r_b_e);
-    println!("K {}", res.energy_scale);
-    for l in &res.history { println!("{} T {:.1} mse {:.5} best {:.5} {} dE {:.1} acc {} pat {}", l.iter, l.temperature, l.mse, l.best_loss, l.proposal, l.delta_e, l.accepted, l.pattern); }
-    println!("final {} psnr {}", res.params.cloth.pattern, res.psnr_db);
-}
-
-#[test]
-#[ignore]
-fn debug_scale() {
-    let truth = two_colour_cloth("1100/0110/0011/1001");
-    let target = synthetic_target(&truth, 8, 32, 777, Some(2));
-    let again = synthetic_target(&truth, 8, 4, 1, Some(2));
-    println!("target mean {:?} max {:?}", target.mean(), target.data.iter().map(|p| p[0]).fold(0.0f32, f32::max));
-    println!("mse same cloth other seed {}", woven::fit::target::mse(&target, &again));
-    let mut g = truth.clone(); g.appearance = woven::fit::grey_appearance();
-    let gi = synthetic_target(&g, 8, 4, 1, Some(2));
-    println!("grey mean {:?} mse {}", gi.mean(), woven::fit::target::mse(&target, &gi));
-}
-
-#[test]
-#[ignore]
-fn debug_noise() {
-    let truth = two_colour_cloth("1100/0110/0011/1001");
-    for spp in [4u32, 16] {
-    let target = synthetic_target(&truth, 8, 16, 777, Some(2));
-    let again = synthetic_target(&truth, 8, spp, 1, Some(2));
-    let cl = |i: &Image| Image::new(i.width, i.height, i.data.iter().map(|p| p.map(|v| v.clamp(0.0, 1.0))).collect());
-    println!("spp {spp} clamped mse {} psnr {}", woven::fit::target::mse(&cl(&target), &cl(&again)), target.psnr_srgb(&again));
-    }
+fn eval_run() {
+    let args = woven::fit::cli::EvalArgs { count: 6, iterations: 100, ..Default::default() };
+    woven::fit::cli::run_eval(&args).unwrap();
 }

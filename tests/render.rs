@@ -175,3 +175,22 @@ impl TestTweak for ClothParams {
         self.appearance.r_s = [0.6, 0.5, 0.4];
     }
 }
+
+#[test]
+fn point_light_falls_off_with_the_inverse_square_of_distance() {
+    let cloth = ClothParams::preset("plain").unwrap();
+    let lit = |h: f32| {
+        let rig = LightRig {
+            ambient: [0.0; 3],
+            lights: vec![LightSpec::Point { name: "lamp".into(), position: [10.0, 10.0, h], intensity: [400.0; 3] }],
+        };
+        let scene = Scene { lights: rig, ..small_scene(16, 2) };
+        let m = render(&cloth, &scene, &RenderOptions::default()).mean();
+        (m[0] + m[1] + m[2]) / 3.0
+    };
+    let (near, far) = (lit(50.0), lit(100.0));
+    assert!(near > 0.0 && far > 0.0);
+    // Twice as far: about a quarter of the light (the cloth is ~6 units deep, so not exactly).
+    let ratio = near / far;
+    assert!((3.4..4.6).contains(&ratio), "near/far = {ratio}");
+}

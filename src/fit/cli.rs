@@ -2,7 +2,7 @@
 
 use super::{fit, output, FitMode, FitOptions, FitResult};
 use crate::image_io::Image;
-use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, N_APPEARANCE, NF_RANGE, NP_RANGE, RADIUS_RANGE};
+use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, N_APPEARANCE, RADIUS_RANGE};
 use crate::pattern::{WeavePattern, PRESETS};
 use crate::render::{render, RenderOptions};
 use crate::scene::LightRig;
@@ -136,7 +136,8 @@ fn parse_grid(s: &str) -> Result<(usize, usize)> {
 /// `woven fit`: load, fit (Ctrl-C stops and keeps the best so far), write the outputs.
 pub fn run_fit(args: &FitArgs) -> Result<()> {
     let opts = args.to_options()?;
-    let input = Image::load(&args.image, super::MIN_INPUT_SIDE).with_context(|| format!("loading {}", args.image.display()))?;
+    let input =
+        Image::load(&args.image, super::MIN_INPUT_SIDE).with_context(|| format!("loading {}", args.image.display()))?;
     let stop = opts.stop.clone();
     // Only one handler per process; a second fit in the same process keeps the first handler.
     let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
@@ -171,8 +172,11 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
 /// `n_f`, each as a fraction of its range.
 pub fn param_errors(fit: &ClothParams, truth: &ClothParams) -> Vec<(String, f32)> {
     let (a, b) = (fit.appearance.to_vec(), truth.appearance.to_vec());
-    let mut v: Vec<(String, f32)> =
-        APPEARANCE_RANGES.iter().enumerate().map(|(k, r)| (r.name.to_string(), (a[k] - b[k]).abs() / (r.max - r.min))).collect();
+    let mut v: Vec<(String, f32)> = APPEARANCE_RANGES
+        .iter()
+        .enumerate()
+        .map(|(k, r)| (r.name.to_string(), (a[k] - b[k]).abs() / (r.max - r.min)))
+        .collect();
     let rs = RADIUS_RANGE.1 - RADIUS_RANGE.0;
     v.push(("r_e".into(), (fit.r_e - truth.r_e).abs() / rs));
     v.push(("r_a".into(), (fit.r_a - truth.r_a).abs() / rs));
@@ -183,7 +187,8 @@ pub fn param_errors(fit: &ClothParams, truth: &ClothParams) -> Vec<(String, f32)
 
 /// Render a synthetic one-repeat target at `c` px per cell (a different seed from the fit's).
 pub fn synthetic_target(cloth: &ClothParams, c: u32, spp: u32, seed: u64, threads: Option<usize>) -> Image {
-    let scene = super::target::fit_scene(cloth.pattern.n_e(), cloth.pattern.n_a(), c, spp, seed, &LightRig::default_rig());
+    let scene =
+        super::target::fit_scene(cloth.pattern.n_e(), cloth.pattern.n_a(), c, spp, seed, &LightRig::default_rig());
     render(cloth, &scene, &RenderOptions { threads, ..Default::default() })
 }
 
@@ -215,7 +220,13 @@ fn fmt_table(fit: &ClothParams, truth: &ClothParams) -> String {
     let (a, b) = (fit.appearance.to_vec(), truth.appearance.to_vec());
     let mut s = format!("{:<10} {:>9} {:>9} {:>8}\n", "param", "true", "fit", "err %rng");
     for (k, r) in APPEARANCE_RANGES.iter().enumerate() {
-        s += &format!("{:<10} {:>9.3} {:>9.3} {:>8.1}\n", r.name, b[k], a[k], 100.0 * (a[k] - b[k]).abs() / (r.max - r.min));
+        s += &format!(
+            "{:<10} {:>9.3} {:>9.3} {:>8.1}\n",
+            r.name,
+            b[k],
+            a[k],
+            100.0 * (a[k] - b[k]).abs() / (r.max - r.min)
+        );
     }
     for (n, t, f, span) in [
         ("r_e", truth.r_e, fit.r_e, 4.0),
@@ -248,7 +259,12 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     output::write_outputs(&res, &target, out_dir, opts.threads)?;
     let exact = res.cloth.pattern.reduced().equivalent(&truth.pattern);
     println!("{}", fmt_table(&res.cloth, &truth));
-    println!("pattern: true {}  fit {}  ({})", truth.pattern, res.params.cloth.pattern, if exact { "exact up to shift" } else { "DIFFERENT" });
+    println!(
+        "pattern: true {}  fit {}  ({})",
+        truth.pattern,
+        res.params.cloth.pattern,
+        if exact { "exact up to shift" } else { "DIFFERENT" }
+    );
     println!("pre-estimated pattern: {}", res.pre_pattern);
     let errs: Vec<f32> = param_errors(&res.cloth, &truth).iter().map(|e| e.1).collect();
     println!(
@@ -425,10 +441,10 @@ impl EvalReport {
     /// Markdown section for docs/benchmarks.md.
     pub fn markdown(&self) -> String {
         let mut s = format!(
-            "## Fit evaluation (`woven eval --ablation {:?}`)\n\n{} random synthetic one-repeat targets (half presets, half random \
+            "## Fit evaluation (`woven eval --ablation {}`)\n\n{} random synthetic one-repeat targets (half presets, half random \
              patterns without floating yarns; appearance uniform in Table 1), {} iterations, {} threads. Error = |fit − true| as a \
              fraction of the Table-1 range over the 30 appearance scalars, r_e, r_a, n_p, n_f.\n\n",
-            self.ablation,
+            match self.ablation { Ablation::None => "none", Ablation::NoPre => "no-pre", Ablation::Separate => "separate" },
             self.cases.len(),
             self.iterations,
             self.threads
@@ -552,7 +568,7 @@ pub fn run_eval(args: &EvalArgs) -> Result<()> {
     println!("\n{md}");
     if let Some(p) = &args.markdown {
         let mut text = std::fs::read_to_string(p).unwrap_or_default();
-        text.push_str("\n");
+        text.push('\n');
         text.push_str(&md);
         crate::io::write_atomic(p, text.as_bytes())?;
     }

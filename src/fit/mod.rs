@@ -18,7 +18,7 @@ pub mod output;
 pub mod target;
 
 use crate::image_io::Image;
-use crate::params::{Appearance, ClothParams, ParamFile, APPEARANCE_RANGES, N_APPEARANCE, NF_RANGE, NP_RANGE};
+use crate::params::{Appearance, ClothParams, ParamFile, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, N_APPEARANCE};
 use crate::pattern::WeavePattern;
 use crate::render::{PathCache, Prepared, RenderOptions};
 use crate::scene::{LightRig, Scene};
@@ -142,7 +142,15 @@ impl Default for FitOptions {
 impl FitOptions {
     /// Fast settings (tests, demo, eval): smaller renders, fewer iterations.
     pub fn fast() -> Self {
-        FitOptions { iterations: 120, px_per_cell: 10, spp: 4, pre_px_per_cell: 8, pre_spp: 4, final_spp: 16, ..Default::default() }
+        FitOptions {
+            iterations: 120,
+            px_per_cell: 10,
+            spp: 4,
+            pre_px_per_cell: 8,
+            pre_spp: 4,
+            final_spp: 16,
+            ..Default::default()
+        }
     }
 }
 
@@ -499,7 +507,13 @@ fn propose(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> (ClothParams, 
         c.pattern = cloth.pattern.clone();
     }
     if (cells && r < 0.9) || (!cells && r < 0.5) {
-        let up = if cloth.n_p <= NP_RANGE.0 { true } else if cloth.n_p >= NP_RANGE.1 { false } else { rng.random() };
+        let up = if cloth.n_p <= NP_RANGE.0 {
+            true
+        } else if cloth.n_p >= NP_RANGE.1 {
+            false
+        } else {
+            rng.random()
+        };
         c.n_p = if up { cloth.n_p + 1 } else { cloth.n_p - 1 };
         let d = format!("n_p {}->{}", cloth.n_p, c.n_p);
         (c, d)
@@ -516,8 +530,7 @@ fn propose(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> (ClothParams, 
 
 fn clamp_ranges(cloth: &ClothParams) -> ClothParams {
     let mut c = cloth.clone();
-    let v: Vec<f32> =
-        c.appearance.to_vec().iter().zip(APPEARANCE_RANGES).map(|(x, r)| x.clamp(r.min, r.max)).collect();
+    let v: Vec<f32> = c.appearance.to_vec().iter().zip(APPEARANCE_RANGES).map(|(x, r)| x.clamp(r.min, r.max)).collect();
     c.appearance = Appearance::from_slice(&v);
     c.r_e = c.r_e.clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
     c.r_a = c.r_a.clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
@@ -530,7 +543,13 @@ fn total_loss(mse: f32, x: &[f32; N_APPEARANCE]) -> f32 {
 
 /// Scene rendering the input's framing for a cloth with `reduced` pattern when the fit grid is
 /// `n_e × n_a` (unreduced).
-fn output_scene(fit: &Scene, n: (usize, usize), reduced: (usize, usize), size: (u32, u32), prep: Option<&crate::prep::Prepared>) -> Scene {
+fn output_scene(
+    fit: &Scene,
+    n: (usize, usize),
+    reduced: (usize, usize),
+    size: (u32, u32),
+    prep: Option<&crate::prep::Prepared>,
+) -> Scene {
     let (n_e, n_a) = n;
     let (re, ra) = reduced;
     let fx = n_a as f32 / ra as f32;
@@ -598,9 +617,8 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     }
     let (n_e, n_a) = match grid {
         Some(g) => g,
-        None => target::detect_grid(&crop).context(
-            "cannot detect the yarn grid of the input; pass --grid NExNA or --pattern, or run with prep",
-        )?,
+        None => target::detect_grid(&crop)
+            .context("cannot detect the yarn grid of the input; pass --grid NExNA or --pattern, or run with prep")?,
     };
     if n_e == 0 || n_a == 0 || n_e > crate::pattern::MAX_SIDE || n_a > crate::pattern::MAX_SIDE {
         bail!("grid {n_e}×{n_a} is outside 1..={}", crate::pattern::MAX_SIDE);
@@ -650,7 +668,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     let t_pre = t_start.elapsed().as_secs_f64() - t_prep;
 
     // 3. Joint optimization.
-    let mut rng = StdRng::seed_from_u64(opts.seed ^ 0x5EED_F17);
+    let mut rng = StdRng::seed_from_u64(opts.seed ^ 0x05EE_DF17);
     let cells = opts.pattern.is_none();
     let n_iter = opts.iterations;
     let (anneal_iters, grad_from) = match opts.mode {
@@ -791,7 +809,12 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
                     let r0 = radii[q];
                     let hh = (r0 + h).min(crate::params::RADIUS_RANGE.1) - (r0 - h).max(crate::params::RADIUS_RANGE.0);
                     *grq = (lp[0] - lp[1]) / hh.max(1e-6)
-                        + anneal::barrier_grad(r0, crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1, BARRIER_LAMBDA);
+                        + anneal::barrier_grad(
+                            r0,
+                            crate::params::RADIUS_RANGE.0,
+                            crate::params::RADIUS_RANGE.1,
+                            BARRIER_LAMBDA,
+                        );
                 }
                 let lr = [opts.lr * rspan * decay; 2];
                 adam_r.step(&mut radii, &gr, &lr, &[true; 2]);
@@ -866,7 +889,11 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             }
         }
     }
-    checkpoints.push(Checkpoint { iter: history.len(), secs: t_start.elapsed().as_secs_f64(), cloth: best_cloth.clone() });
+    checkpoints.push(Checkpoint {
+        iter: history.len(),
+        secs: t_start.elapsed().as_secs_f64(),
+        cloth: best_cloth.clone(),
+    });
     let t_opt = t_start.elapsed().as_secs_f64() - t_prep - t_pre;
 
     // Final render of the best state.

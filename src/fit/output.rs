@@ -145,12 +145,7 @@ pub fn write_trace(res: &FitResult, path: &Path) -> Result<()> {
             .y_label_area_size(70)
             .build_cartesian_2d(0.0..n, 0.0..1.0f64)
             .map_err(|e| err(&e))?;
-        chart
-            .configure_mesh()
-            .x_desc("iteration")
-            .label_style(("sans-serif", 12))
-            .draw()
-            .map_err(|e| err(&e))?;
+        chart.configure_mesh().x_desc("iteration").label_style(("sans-serif", 12)).draw().map_err(|e| err(&e))?;
         type Getter = Box<dyn Fn(&super::IterLog) -> f64>;
         let series: Vec<(&str, RGBColor, Getter)> = vec![
             ("r_e", RGBColor(200, 0, 0), Box::new(|l| (l.r_e as f64 - 1.0) / 4.0)),

@@ -129,9 +129,8 @@ impl Tracer<'_> {
 
     /// Visibility along `dir` from world point `pw` (tile point `pt`) on yarn `yarn`, testing the
     /// implicit plies at every tube crossing (ply visibility `V_p`, §3.1, ambiguity 17).
-    fn visible(&self, yarn: usize, pw: Vec3, pt: Vec3, dir: Vec3, max_dist: f32) -> bool {
+    fn visible(&self, yarn: usize, pw: Vec3, pt: Vec3, nt: Vec3, dir: Vec3, max_dist: f32) -> bool {
         let own = &self.geom.set.yarns[yarn];
-        let nt = self.tube_normal(yarn, pt);
         let mut start = pw;
         let mut skip = Some((yarn, 1e-2));
         let mut travelled = 0.0;
@@ -175,6 +174,7 @@ impl Tracer<'_> {
         out: &mut Vec<LightHit>,
     ) -> (u32, u32) {
         let start = out.len() as u32;
+        let nt = self.tube_normal(yarn, pt);
         for light in self.lights {
             let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
             let ls = light.sample(pw, u1, u2);
@@ -182,7 +182,7 @@ impl Tracer<'_> {
                 continue;
             }
             let l = frame.to_local(ls.dir);
-            if l.z == 0.0 || !self.visible(yarn, pw, pt, ls.dir, ls.dist) {
+            if l.z == 0.0 || !self.visible(yarn, pw, pt, nt, ls.dir, ls.dist) {
                 continue;
             }
             out.push(LightHit { l, w: ls.weight });

@@ -104,13 +104,9 @@ impl Light {
     /// Radiance seen along direction `d` by a ray escaping the cloth (ambient + distant discs).
     pub fn radiance(&self, d: Vec3) -> [f32; 3] {
         match self {
-            Light::Distant { dir, e, cos_cone } if *cos_cone < 1.0 - 1e-7 => {
-                if d.dot(*dir) >= *cos_cone {
-                    let omega = 2.0 * PI * (1.0 - cos_cone);
-                    e.map(|x| x / omega)
-                } else {
-                    [0.0; 3]
-                }
+            Light::Distant { dir, e, cos_cone } if *cos_cone < 1.0 - 1e-7 && d.dot(*dir) >= *cos_cone => {
+                let omega = 2.0 * PI * (1.0 - cos_cone);
+                e.map(|x| x / omega)
             }
             Light::Ambient { l } => *l,
             _ => [0.0; 3],

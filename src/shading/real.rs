@@ -143,11 +143,9 @@ impl<const N: usize> Sub for Dual<N> {
 impl<const N: usize> Mul for Dual<N> {
     type Output = Self;
     #[inline]
+    #[allow(clippy::suspicious_arithmetic_impl)] // product rule
     fn mul(self, o: Self) -> Self {
-        let mut d = [0.0; N];
-        for i in 0..N {
-            d[i] = self.d[i] * o.v + o.d[i] * self.v;
-        }
+        let d = std::array::from_fn(|i| self.d[i] * o.v + o.d[i] * self.v);
         Dual { v: self.v * o.v, d }
     }
 }
@@ -160,13 +158,11 @@ impl<const N: usize> MulAssign for Dual<N> {
 impl<const N: usize> Div for Dual<N> {
     type Output = Self;
     #[inline]
+    #[allow(clippy::suspicious_arithmetic_impl)] // quotient rule
     fn div(self, o: Self) -> Self {
         let inv = 1.0 / o.v;
         let q = self.v * inv;
-        let mut d = [0.0; N];
-        for i in 0..N {
-            d[i] = (self.d[i] - q * o.d[i]) * inv;
-        }
+        let d = std::array::from_fn(|i| (self.d[i] - q * o.d[i]) * inv);
         Dual { v: q, d }
     }
 }
