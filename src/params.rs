@@ -334,7 +334,7 @@ mod tests {
         assert!(e.contains("eta_s") && e.contains("1.4") && e.contains("1.6"), "{e}");
         let bad = text.replace("\"r_e\": 4.2", "\"r_e\": 0.5");
         assert!(ParamFile::from_json(&bad).unwrap_err().to_string().contains("r_e"));
-        let bad = text.replace("\"a_b\": 0.3", "\"a_b\": NaN");
+        let bad = text.replace("\"a_b\": 0.15", "\"a_b\": NaN");
         assert!(ParamFile::from_json(&bad).is_err());
         let bad = text.replace("\"g_p\"", "\"g_q\"");
         assert!(ParamFile::from_json(&bad).unwrap_err().to_string().contains("g_q"));
