@@ -185,9 +185,11 @@ impl AdamW {
             let upd = ((&m * sm)? / ((&v * sv)?.sqrt()? + EPS)?)?;
             let decay = if self.names[i].ends_with("weight") { 1.0 - lr * self.weight_decay } else { 1.0 };
             let theta = ((var.as_tensor() * decay)? - (upd * lr)?)?;
-            var.set(&theta)?;
-            self.m[i] = m;
-            self.v[i] = v;
+            var.set(&theta.detach())?;
+            // Detached: the moments are built from gradients whose op graph reaches back through the
+            // whole step; keeping it would chain every step's graph together (23 GB after 6 epochs).
+            self.m[i] = m.detach();
+            self.v[i] = v.detach();
         }
         Ok(())
     }

@@ -5,7 +5,7 @@
 //! re-tracing (decision 6: sampling detached, weight `f(θ)/p(θ₀)`).
 
 use super::camera::Camera;
-use super::lights::Light;
+use super::lights::{Light, LightSample};
 use crate::geometry::ply::PlyModel;
 use crate::geometry::tile::TileGeometry;
 use crate::geometry::yarn::Family;
@@ -177,7 +177,23 @@ impl Tracer<'_> {
         let nt = self.tube_normal(yarn, pt);
         for light in self.lights {
             let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
-            let ls = light.sample(pw, u1, u2);
+            let ls = match light {
+                // The environment is sampled ∝ |cos| about the shading normal on both sides (the BYSDF
+                // reflects and transmits), which cancels the cosine of every lobe.
+                Light::Ambient { l } => {
+                    let (sign, u1) = if u1 < 0.5 { (1.0, 2.0 * u1) } else { (-1.0, 2.0 * u1 - 1.0) };
+                    let r = u1.sqrt();
+                    let phi = std::f32::consts::TAU * u2;
+                    let z = (1.0 - u1).max(0.0).sqrt();
+                    if z < 1e-6 {
+                        continue;
+                    }
+                    let dir = frame.to_world(Vec3::new(r * phi.cos(), r * phi.sin(), sign * z)).normalize();
+                    let w = std::f32::consts::TAU / z;
+                    LightSample { dir, weight: l.map(|x| x * w), dist: f32::INFINITY }
+                }
+                _ => light.sample(pw, u1, u2),
+            };
             if ls.weight.iter().all(|&w| w <= 0.0) {
                 continue;
             }
