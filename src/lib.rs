@@ -12,11 +12,13 @@
 pub mod bench;
 pub mod cli;
 pub mod datagen;
+pub mod export;
 pub mod fit;
 pub mod geometry;
 pub mod image_io;
 pub mod io;
 pub mod net;
+pub mod noise;
 pub mod params;
 pub mod pattern;
 pub mod pre;

@@ -56,7 +56,8 @@ pub fn apply_prediction(p: &Prediction, cloth: &mut ClothParams) {
 #[derive(Deserialize)]
 struct LabelLine {
     index: usize,
-    seed: u64,
+    /// Per-image seed (the dataset seed is the same for every line): drives the validation split.
+    sample_seed: u64,
     class_id: usize,
     cloth: ClothParams,
 }
@@ -92,7 +93,7 @@ pub fn load_dataset(dir: &Path) -> Result<(Vec<String>, Vec<Sample>, String)> {
             let path = dir.join("images").join(format!("{:06}.png", l.index));
             let img = Image::load(&path, 8)?;
             pb.inc(1);
-            Ok(Sample { image: img.to_rgb32f(), class: l.class_id, targets: targets(&l.cloth), seed: l.seed })
+            Ok(Sample { image: img.to_rgb32f(), class: l.class_id, targets: targets(&l.cloth), seed: l.sample_seed })
         })
         .collect();
     pb.finish_and_clear();
