@@ -18,7 +18,7 @@ use crate::geometry::yarn::{Family, YarnCurve, YarnSet, CTRL_PER_CELL, PITCH};
 use crate::params::ParamFile;
 use crate::render::camera::Camera;
 use crate::scene::{LightSpec, Projection};
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{ensure, Context, Result};
 use glam::Vec3;
 use serde::Serialize;
 use std::f32::consts::TAU;
@@ -630,9 +630,10 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
 
     // (c) Mitsuba curve files (no comments: Mitsuba's loader accepts only numbers and blank lines).
     let mut control = 0;
-    for (fam, name, range) in
-        [(Family::Weft, "curves_weft.txt", 0..weft_curves), (Family::Warp, "curves_warp.txt", weft_curves..instances.len())]
-    {
+    for (fam, name, range) in [
+        (Family::Weft, "curves_weft.txt", 0..weft_curves),
+        (Family::Warp, "curves_warp.txt", weft_curves..instances.len()),
+    ] {
         let mut s = String::new();
         for inst in &instances[range] {
             let y = &set.yarns[inst.yarn];
@@ -695,10 +696,15 @@ fn scene_xml(params: &ParamFile, set: &YarnSet, about: &str, units: &str) -> Str
          ply/fiber shadowing (G_p, G_f) and the BYSDF's exit-point terms are not reproduced. -->"
     );
     let _ = writeln!(x, "<scene version=\"3.0.0\">");
-    let _ = writeln!(x, "  <integrator type=\"path\">\n    <integer name=\"max_depth\" value=\"16\"/>\n  </integrator>");
+    let _ =
+        writeln!(x, "  <integrator type=\"path\">\n    <integer name=\"max_depth\" value=\"16\"/>\n  </integrator>");
 
     // Camera.
-    let _ = writeln!(x, "  <!-- Camera: the renderer's {:?} view ({}x{} px, {} spp). -->", sc.camera.projection, sc.width, sc.height, sc.spp);
+    let _ = writeln!(
+        x,
+        "  <!-- Camera: the renderer's {:?} view ({}x{} px, {} spp). -->",
+        sc.camera.projection, sc.width, sc.height, sc.spp
+    );
     match view.projection {
         Projection::Orthographic => {
             let _ = writeln!(x, "  <sensor type=\"orthographic\">");
@@ -756,9 +762,9 @@ fn scene_xml(params: &ParamFile, set: &YarnSet, about: &str, units: &str) -> Str
                     x,
                     "  <emitter type=\"directional\">\n    <vector name=\"direction\" x=\"{}\" y=\"{}\" z=\"{}\"/>\n    \
                      <rgb name=\"irradiance\" value=\"{}\"/>\n  </emitter>",
-                    -d.x,
-                    -d.y,
-                    -d.z,
+                    0.0 - d.x,
+                    0.0 - d.y,
+                    0.0 - d.z,
                     fmt_rgb(*irradiance, ex)
                 );
             }
@@ -841,8 +847,7 @@ mod tests {
         assert_eq!(parse_repeats("2x5").unwrap(), [2, 5]);
         assert!(parse_repeats("0").is_err() && parse_repeats("a").is_err() && parse_repeats("1x2x3").is_err());
         let c: Vec<f32> = (0..24).map(|k| (k as f32 * 0.7).sin()).collect();
-        let v: Vec<f32> =
-            (0..24).map(|k| (c[(k + 23) % 24] + 4.0 * c[k] + c[(k + 1) % 24]) / 6.0).collect();
+        let v: Vec<f32> = (0..24).map(|k| (c[(k + 23) % 24] + 4.0 * c[k] + c[(k + 1) % 24]) / 6.0).collect();
         for (a, b) in control_values(&v).iter().zip(&c) {
             assert!((a - b).abs() < 1e-5);
         }

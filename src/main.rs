@@ -92,6 +92,8 @@ enum Cmd {
     Fit(woven::fit::cli::FitArgs),
     /// Fit N random synthetic targets and report pattern accuracy, parameter error, PSNR and time.
     Eval(woven::fit::cli::EvalArgs),
+    /// Export the yarn geometry of a parameter file (PLY curves and tubes, Mitsuba 3 scene).
+    Export(woven::export::ExportArgs),
     /// Render the synthetic training set (resumable, shardable, deterministic).
     Generate(woven::datagen::GenerateArgs),
     /// Train the pre-estimator network on a dataset from `woven generate`.
@@ -149,6 +151,7 @@ fn main() -> Result<()> {
         Cmd::Fit(a) => woven::fit::cli::run_fit(&a),
         Cmd::Eval(a) => woven::fit::cli::run_eval(&a),
         Cmd::Prep { image, out, no_perspective } => cli::prep(&image, &out, no_perspective).map(|_| ()),
+        Cmd::Export(a) => woven::export::run_export(&a),
         Cmd::Generate(a) => woven::datagen::run(&a),
         Cmd::Train(a) => woven::pre::run_train(&a),
         Cmd::Predict(a) => woven::pre::run_predict(&a),

@@ -248,7 +248,10 @@ fn welch(field: &[f64], w: usize, h: usize) -> (usize, Vec<f64>) {
     let mut buf = vec![Complex::new(0.0, 0.0); p * p];
     for &y0 in &starts(h) {
         for &x0 in &starts(w) {
-            let mean = (0..p).flat_map(|y| (0..p).map(move |x| (x, y))).map(|(x, y)| field[(y0 + y) * w + x0 + x]).sum::<f64>()
+            let mean = (0..p)
+                .flat_map(|y| (0..p).map(move |x| (x, y)))
+                .map(|(x, y)| field[(y0 + y) * w + x0 + x])
+                .sum::<f64>()
                 / (p * p) as f64;
             for y in 0..p {
                 for x in 0..p {
@@ -342,12 +345,14 @@ fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
         }
         a.swap(c, piv);
         b.swap(c, piv);
-        for r in c + 1..n {
-            let f = a[r][c] / a[c][c];
-            for k in c..n {
-                a[r][k] -= f * a[c][k];
+        let (top, rest) = a.split_at_mut(c + 1);
+        let pivot = &top[c];
+        for (i, row) in rest.iter_mut().enumerate() {
+            let f = row[c] / pivot[c];
+            for (x, p) in row[c..].iter_mut().zip(&pivot[c..]) {
+                *x -= f * p;
             }
-            b[r] -= f * b[c];
+            b[c + 1 + i] -= f * b[c];
         }
     }
     let mut x = vec![0.0; n];
@@ -364,10 +369,8 @@ fn levenberg_marquardt(model: &mut SpecModel, bins: &[(f64, f64, f64)], p: usize
     let mut lambda = 1e-2;
     let mut cur = sse(&model.theta, bins);
     for _ in 0..iters {
-        let resid: Vec<f64> = bins
-            .iter()
-            .map(|&(fx, fy, ld)| SpecModel::eval(&model.theta, fx, fy).max(1e-300).ln() - ld)
-            .collect();
+        let resid: Vec<f64> =
+            bins.iter().map(|&(fx, fy, ld)| SpecModel::eval(&model.theta, fx, fy).max(1e-300).ln() - ld).collect();
         let mut jac = vec![vec![0.0; bins.len()]; n];
         for (j, col) in jac.iter_mut().enumerate() {
             let h = 1e-5 * (1.0 + model.theta[j].abs());

@@ -193,3 +193,16 @@ fn eval_run() {
     let args = woven::fit::cli::EvalArgs { count: 6, iterations: 100, ..Default::default() };
     woven::fit::cli::run_eval(&args).unwrap();
 }
+
+#[test]
+fn template_candidates_cover_every_shift_of_fitting_presets() {
+    let c = woven::fit::template_candidates(4, 4);
+    let twill = woven::WeavePattern::preset("twill22").unwrap();
+    // All four shifts of twill 2/2 are candidates (as 4×4 unreduced patterns), and plain tiled to 4×4.
+    assert_eq!(c.iter().filter(|p| p.reduced().equivalent(&twill)).count(), 4);
+    assert!(c.iter().any(|p| p.reduced() == woven::WeavePattern::preset("plain").unwrap()));
+    assert!(c.iter().all(|p| (p.n_e(), p.n_a()) == (4, 4)));
+    // No 5×5 weave fits a 4×4 grid.
+    assert!(!c.iter().any(|p| p.reduced().equivalent(&woven::WeavePattern::preset("satin5").unwrap())));
+    assert!(woven::fit::template_candidates(7, 7).is_empty());
+}

@@ -63,6 +63,9 @@ pub struct FitArgs {
     /// Fast settings (10 px per cell, 120 iterations).
     #[arg(long)]
     pub fast: bool,
+    /// Do not add the estimated photo noise (noise.json) to fit.png.
+    #[arg(long)]
+    pub no_noise: bool,
 }
 
 impl FitArgs {
@@ -85,6 +88,7 @@ impl FitArgs {
             energy_scale: None,
             threads: None,
             fast: false,
+            no_noise: false,
         }
     }
 
@@ -146,6 +150,7 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         eprintln!("warning: {w}");
     }
     output::write_outputs(&res, &input, &args.out, args.threads)?;
+    finish_outputs(&res, &args.out, !args.no_noise, args.threads)?;
     let c = &res.params.cloth;
     println!(
         "{}{}: pattern {} ({}×{}), n_p {}, n_f {}, r_e {:.2}, r_a {:.2}, PSNR {:.2} dB, {:.1} s (prep {:.1}, pre {:.1}, opt {:.1}) -> {}",
@@ -165,6 +170,34 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         res.timings[2],
         args.out.display()
     );
+    Ok(())
+}
+
+/// Noise post-estimation (paper §6.3) and geometry export beside `fit.json`: with preparation, the
+/// residual rectified − regularized gives `noise.json`, whose synthesized noise is added to `fit.png`
+/// (unless `noise` is false); the yarn curves go to `export/` (PLY + Mitsuba 3 scene).
+pub fn finish_outputs(res: &FitResult, dir: &Path, noise: bool, threads: Option<usize>) -> Result<()> {
+    if let Some(p) = &res.prep {
+        let rect = Image::from_rgb32f(&p.rectified);
+        let reg = Image::from_rgb32f(&p.regularized);
+        match crate::noise::residual(&rect, &reg).and_then(|r| crate::noise::NoiseModel::fit(&r)) {
+            Ok(model) => {
+                model.save(&dir.join("noise.json"))?;
+                if noise {
+                    let mut img = crate::render::render(
+                        &res.params.cloth,
+                        &res.params.scene,
+                        &crate::render::RenderOptions { threads, ..Default::default() },
+                    );
+                    model.add_to(&mut img, res.params.scene.seed);
+                    img.save_png(&dir.join("fit.png"))?;
+                }
+            }
+            Err(e) => eprintln!("warning: no noise model ({e})"),
+        }
+    }
+    crate::export::export(&res.params, &dir.join("export"), &crate::export::ExportOptions::default())
+        .context("exporting the yarn geometry")?;
     Ok(())
 }
 

@@ -401,6 +401,63 @@ fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, c: u32, max_sweeps: us
     }
 }
 
+/// The named weaves (presets and their 90° rotations) that fit an `n_e × n_a` grid (tiled when
+/// their repeat divides it), in every cyclic shift, without duplicates.
+pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
+    let mut out: Vec<WeavePattern> = Vec::new();
+    for name in crate::pattern::PRESETS {
+        let Ok(p) = WeavePattern::preset(name) else { continue };
+        for q in [p.rotated90(), p] {
+            if n_e % q.n_e() != 0 || n_a % q.n_a() != 0 {
+                continue;
+            }
+            for di in 0..q.n_e() {
+                for dj in 0..q.n_a() {
+                    let rows: Vec<Vec<bool>> =
+                        (0..n_e).map(|i| (0..n_a).map(|j| q.get(i + di, j + dj)).collect()).collect();
+                    if let Ok(c) = WeavePattern::from_rows_unreduced(&rows) {
+                        if !out.contains(&c) {
+                            out.push(c);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Template matching of the pattern pre-estimation: try every named weave that fits the grid, in
+/// every shift, each with its own colour estimate; keep the best if it beats the current pattern.
+fn match_templates(ev: &Evaluator, cloth: &mut ClothParams, c: u32, stop: &AtomicBool) {
+    let eval = |cand: &mut ClothParams| -> f32 {
+        let cache = ev.record(cand);
+        fit_colours(ev, cand, &cache, c);
+        ev.mse_of(&cache.shade(&cand.appearance))
+    };
+    let mut cur = eval(cloth);
+    for p in template_candidates(cloth.pattern.n_e(), cloth.pattern.n_a()) {
+        if stop.load(Ordering::Relaxed) {
+            return;
+        }
+        let mut cand = cloth.clone();
+        cand.pattern = p;
+        let l = eval(&mut cand);
+        if l < cur {
+            cur = l;
+            *cloth = cand;
+        }
+    }
+}
+
+/// The image repeated `k × k` times (a periodic crop shown as a larger piece of fabric).
+pub fn tile(img: &Image, k: u32) -> Image {
+    let (w, h) = (img.width * k, img.height * k);
+    let data =
+        (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).map(|(x, y)| img.get(x % img.width, y % img.height)).collect();
+    Image::new(w, h, data)
+}
+
 /// Colour pre-estimation (paper §5.2) converted into `R^B` through the renderer: per channel a
 /// two-point affine fit of the rendered cell means against `R^B` (re-shading recorded paths, no
 /// re-trace); specular colour from the top-10% pixels, converted the same way.
@@ -642,10 +699,12 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         let pre_ev = Evaluator::new(pre_scene, resample(&crop, n_a as u32 * cp, n_e as u32 * cp), opts.loss_block);
         if opts.pattern.is_none() {
             greedy_sweeps(&pre_ev, &mut cloth, cp, opts.max_sweeps, stop);
+            match_templates(&pre_ev, &mut cloth, cp, stop);
         }
         match opts.model.as_ref().filter(|m| m.exists()) {
             Some(m) => match crate::net::PreEstimator::load(m) {
-                Ok(net) => match net.predict(&input.to_rgb32f()) {
+                // The network was trained on views of 1.5–4 repeats: show it the repeat tiled 3×3.
+                Ok(net) => match net.predict(&tile(&crop, 3).to_rgb32f()) {
                     Ok(pred) => apply_network(&mut cloth, &pred),
                     Err(e) => warnings.push(format!("pre-estimator failed on the input ({e}); using defaults")),
                 },
