@@ -290,6 +290,7 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     target.save_png(&out_dir.join("target.png"))?;
     let res = fit(&target, &opts)?;
     output::write_outputs(&res, &target, out_dir, opts.threads)?;
+    finish_outputs(&res, out_dir, false, opts.threads)?;
     let exact = res.cloth.pattern.reduced().equivalent(&truth.pattern);
     println!("{}", fmt_table(&res.cloth, &truth));
     println!(
@@ -503,9 +504,41 @@ impl EvalReport {
             let med: Vec<f32> = self.cases.iter().map(|c| c.curve[i].2).collect();
             s += &format!("| {k} | {secs:.1} | {:.3} |\n", quantile(&med, 0.5));
         }
+        s += "\nPer-parameter error, % of the Table-1 range (median / 90th percentile over the targets, the format of \
+               seed 002's Table 2):\n\n| parameter | median % | p90 % |\n|---|---|---|\n";
+        for (k, name) in param_names().iter().enumerate() {
+            let v: Vec<f32> = self.cases.iter().filter_map(|c| c.errors.get(k).copied()).collect();
+            s += &format!("| `{name}` | {:.1} | {:.1} |\n", 100.0 * quantile(&v, 0.5), 100.0 * quantile(&v, 0.9));
+        }
+        let sub = self.subset_errors();
+        s += &format!(
+            "\nBody colours and radii only (`r_b_e`, `r_b_a`, `r_e`, `r_a`, the parameters every view shows): median {:.1} %, \
+             p90 {:.1} %.\n",
+            100.0 * quantile(&sub, 0.5),
+            100.0 * quantile(&sub, 0.9)
+        );
         s += &format!("\n`{}`\n", self.summary_line());
         s
     }
+
+    /// Errors of the body colours and radii over all cases.
+    pub fn subset_errors(&self) -> Vec<f32> {
+        let names = param_names();
+        let keep: Vec<usize> = names
+            .iter()
+            .enumerate()
+            .filter(|(_, n)| n.starts_with("r_b_") || *n == "r_e" || *n == "r_a")
+            .map(|(k, _)| k)
+            .collect();
+        self.cases.iter().flat_map(|c| keep.iter().filter_map(|&k| c.errors.get(k).copied())).collect()
+    }
+}
+
+/// Names of [`param_errors`] entries, in order.
+pub fn param_names() -> Vec<String> {
+    let mut v: Vec<String> = APPEARANCE_RANGES.iter().map(|r| r.name.to_string()).collect();
+    v.extend(["r_e", "r_a", "n_p", "n_f"].map(String::from));
+    v
 }
 
 /// Run the evaluation and return the report (see [`run_eval`]).
