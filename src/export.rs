@@ -595,7 +595,7 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
             let y = &set.yarns[inst.yarn];
             let rp = element_radius(n_p) * y.radius;
             let ring_r = y.radius - rp;
-            let kappa = if ring_r > 1e-6 { PLY_TWIST_DEG.to_radians().tan() / ring_r } else { 0.0 };
+            let (kappa, _) = crate::geometry::ply::PlyModel { n_p, n_f: cloth.n_f }.twists(y);
             // Enough samples for the helix: at most π/8 of twist per sample.
             let per_cell = k_s.max((kappa * PITCH * 1.2 / (std::f32::consts::PI / 8.0)).ceil() as usize);
             let n = ((inst.s1 - inst.s0) / PITCH).round() as usize * per_cell + 1;

@@ -194,3 +194,22 @@ fn point_light_falls_off_with_the_inverse_square_of_distance() {
     let ratio = near / far;
     assert!((3.4..4.6).contains(&ratio), "near/far = {ratio}");
 }
+
+#[test]
+fn one_periodic_tile_renders_like_the_whole_fabric() {
+    // Twist rates are whole turns per repeat, so a 1-repeat tile and a many-repeat tile give the
+    // same image for the same random numbers (up to float rounding at the hits).
+    let cloth = ClothParams::preset("twill31").unwrap();
+    let mut scene = small_scene(48, 2);
+    scene.camera.tiles = 3.0;
+    let tile = render(&cloth, &scene, &RenderOptions::default());
+    let whole = render(&cloth, &scene, &RenderOptions { whole_fabric: true, ..Default::default() });
+    let diffs: Vec<f32> = tile
+        .data
+        .iter()
+        .zip(&whole.data)
+        .map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).abs()).fold(0.0, f32::max))
+        .collect();
+    let close = diffs.iter().filter(|&&d| d < 1e-3).count();
+    assert!(close as f32 >= 0.97 * diffs.len() as f32, "only {close}/{} pixels match", diffs.len());
+}

@@ -162,6 +162,22 @@ impl PlyModel {
         (rp, ring, kappa)
     }
 
+    /// Ply and fiber twist rates of `yarn` (per unit arc length), rounded so that the plies advance
+    /// by whole multiples of 2π/n_p and the fibers by whole turns per pattern repeat: the twist is
+    /// periodic: one tile then joins its neighbours without a seam, and a
+    /// tile of k repeats renders exactly like k tiles.
+    pub fn twists(&self, yarn: &YarnCurve) -> (f32, f32) {
+        let (rp, ring, kappa0) = self.layout(yarn.radius);
+        let len = yarn.arc_length(yarn.repeat).max(1e-6);
+        // Rate k rounded so that k·l is a whole number of `step`s (at least one).
+        let whole = |k: f32, l: f32, step: f32| (k * l / step).round().max(1.0) * step / l;
+        // n_p identical plies repeat after 1/n_p of a turn, so that is the period the plies need.
+        let kappa = if kappa0 > 0.0 { whole(kappa0, len, TAU / self.n_p as f32) } else { 0.0 };
+        let ply_len = len * (1.0 + (ring * kappa).powi(2)).sqrt();
+        let kappa_f = if rp > 1e-6 { -whole(FIBER_TWIST_DEG.to_radians().tan() / rp, ply_len, TAU) } else { 0.0 };
+        (kappa, kappa_f)
+    }
+
     /// Does the line through `q` along `d` cross any ply of `yarn` (ply visibility `V_p`, §3.1)?
     pub fn blocks(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
         self.intersect(yarn, q, d, true).is_some()
@@ -173,7 +189,8 @@ impl PlyModel {
     fn intersect(&self, yarn: &YarnCurve, q: Vec3, d: Vec3, entry: bool) -> Option<PlyLocal> {
         let s = yarn.closest_s(q);
         let f = yarn.frame(s);
-        let (rp, ring, kappa) = self.layout(yarn.radius);
+        let (rp, ring, _) = self.layout(yarn.radius);
+        let (kappa, _) = self.twists(yarn);
         let rel = q - f.c;
         let a = Vec2::new(rel.dot(f.ex), rel.dot(f.ey));
         let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
@@ -244,7 +261,7 @@ impl PlyModel {
         // Fiber table at θ_f = u_p + κ_f ℓ_p (ply azimuth + fiber twist × ply arc length).
         let u_p = n2.y.atan2(n2.x) - l.beta;
         let ell_p = f.arc * (1.0 + (l.ring * l.kappa).powi(2)).sqrt();
-        let kappa_f = if l.rp > 1e-6 { -FIBER_TWIST_DEG.to_radians().tan() / l.rp } else { 0.0 };
+        let (_, kappa_f) = self.twists(yarn);
         let theta_f = u_p + kappa_f * ell_p;
         let fib = fiber_table(self.n_f);
         let pert = CrossSection::lookup(&fib.pert, theta_f);

@@ -43,6 +43,9 @@ pub struct YarnCurve {
     pub radius: f32,
     /// Height profile over the length coordinate `s` (x for weft, y for warp).
     pub height: PeriodicBSpline,
+    /// Length along `s` of the pattern's minimum repeat (≤ the curve's period when the tile holds
+    /// several repeats): twist rates are whole turns per repeat.
+    pub repeat: f32,
     arc: Vec<f32>,
 }
 
@@ -77,7 +80,7 @@ impl YarnCurve {
             arc[k + 1] = arc[k] + ds / 6.0 * (slope(s0) + 4.0 * slope(s0 + ds / 2.0) + slope(s0 + ds));
         }
         let offset = (index as f32 + 0.5) * PITCH;
-        YarnCurve { family, index, offset, radius, height, arc }
+        YarnCurve { family, index, offset, radius, height, repeat: period, arc }
     }
 
     /// Period of the curve along `s`.
@@ -200,6 +203,13 @@ impl YarnSet {
             let raw: Vec<f32> =
                 (0..ne * CTRL_PER_CELL).map(|k| if pattern.get(k / CTRL_PER_CELL, j) { -h } else { h }).collect();
             yarns.push(YarnCurve::new(Family::Warp, j, r_a, smooth_periodic(&raw)));
+        }
+        let red = pattern.reduced();
+        for y in &mut yarns {
+            y.repeat = match y.family {
+                Family::Weft => red.n_a() as f32 * PITCH,
+                Family::Warp => red.n_e() as f32 * PITCH,
+            };
         }
         YarnSet { yarns, tile_x: na as f32 * PITCH, tile_y: ne as f32 * PITCH, h }
     }
