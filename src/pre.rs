@@ -226,6 +226,9 @@ pub struct PredictArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Also time inference on one thread (mean over 50 predictions, after loading).
+    #[arg(long)]
+    pub timing: bool,
 }
 
 /// `woven predict`.
@@ -233,6 +236,10 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
     let model = PreEstimator::load(&a.model)?;
     let img = Image::load(&a.image, 8)?;
     let p = model.predict(&img.to_rgb32f())?;
+    if a.timing {
+        let ms = crate::net::bench_inference(&model, 50);
+        eprintln!("inference: {ms:.2} ms per image on 1 thread ({} px input)", model.spec().input_size);
+    }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&p)?);
         return Ok(());
