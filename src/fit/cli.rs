@@ -336,10 +336,10 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value = "none")]
     pub ablation: Ablation,
     /// Optimization iterations per fit.
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, default_value_t = 200)]
     pub iterations: usize,
     /// Pixels per cell (targets and fits).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 16)]
     pub px_per_cell: u32,
     /// Largest random pattern side.
     #[arg(long, default_value_t = 5)]
@@ -361,8 +361,8 @@ impl Default for EvalArgs {
             count: 8,
             seed: 1,
             ablation: Ablation::None,
-            iterations: 120,
-            px_per_cell: 10,
+            iterations: 200,
+            px_per_cell: 16,
             max_side: 5,
             known_grid: false,
             markdown: None,
