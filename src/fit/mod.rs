@@ -408,7 +408,7 @@ pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
     for name in crate::pattern::PRESETS {
         let Ok(p) = WeavePattern::preset(name) else { continue };
         for q in [p.rotated90(), p] {
-            if n_e % q.n_e() != 0 || n_a % q.n_a() != 0 {
+            if !n_e.is_multiple_of(q.n_e()) || !n_a.is_multiple_of(q.n_a()) {
                 continue;
             }
             for di in 0..q.n_e() {
