@@ -109,6 +109,67 @@ pub struct ClothParams {
     pub r_a: f32,
     /// Shading parameters.
     pub appearance: Appearance,
+    /// Spatially varying body colour (paper §7.2): per-texel multipliers of `R^B`/`S^B` over the
+    /// pattern tile. Absent: uniform colour per yarn family.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub body_texture: Option<BodyTexture>,
+}
+
+/// Body-colour texture maps (multipliers of the family's `R^B` and `S^B`), one per yarn family,
+/// laid over the pattern tile (`width` texels along x spanning `n_a` cells, `height` along y
+/// spanning `n_e` cells).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BodyTexture {
+    /// Texels along x.
+    pub width: u32,
+    /// Texels along y.
+    pub height: u32,
+    /// Weft multipliers, row-major, each channel in [0, 4].
+    pub weft: Vec<Rgb>,
+    /// Warp multipliers, row-major, each channel in [0, 4].
+    pub warp: Vec<Rgb>,
+}
+
+impl BodyTexture {
+    /// A texture of ones (`k` texels per cell) for an `n_e × n_a` tile.
+    pub fn ones(n_e: usize, n_a: usize, k: u32) -> Self {
+        let (w, h) = (n_a as u32 * k, n_e as u32 * k);
+        BodyTexture {
+            width: w,
+            height: h,
+            weft: vec![[1.0; 3]; (w * h) as usize],
+            warp: vec![[1.0; 3]; (w * h) as usize],
+        }
+    }
+
+    /// Texel index of tile position (`u`, `v`) given as fractions of the tile in [0, 1).
+    pub fn texel(&self, u: f32, v: f32) -> usize {
+        let x = ((u.rem_euclid(1.0) * self.width as f32) as u32).min(self.width - 1);
+        let y = ((v.rem_euclid(1.0) * self.height as f32) as u32).min(self.height - 1);
+        (y * self.width + x) as usize
+    }
+
+    /// Check sizes and values.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        let n = (self.width as usize) * (self.height as usize);
+        if self.width == 0 || self.height == 0 || self.weft.len() != n || self.warp.len() != n {
+            return Err(ParamError::Invalid {
+                field: "body_texture".into(),
+                msg: format!(
+                    "needs width·height = {n} texels per family, got {} and {}",
+                    self.weft.len(),
+                    self.warp.len()
+                ),
+            });
+        }
+        for (k, t) in self.weft.iter().chain(&self.warp).enumerate() {
+            for c in t {
+                check_range(&format!("body_texture texel {k}"), *c as f64, 0.0, 4.0)?;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A parameter file: the cloth plus the scene it is rendered in.
@@ -246,6 +307,9 @@ impl ClothParams {
         let (a, b) = (RADIUS_RANGE.0 as f64, RADIUS_RANGE.1 as f64);
         check_range("r_e", self.r_e as f64, a, b)?;
         check_range("r_a", self.r_a as f64, a, b)?;
+        if let Some(t) = &self.body_texture {
+            t.validate()?;
+        }
         self.appearance.validate()
     }
 
@@ -253,7 +317,15 @@ impl ClothParams {
     /// `name` is a weave preset (`plain`, `twill22`, …); the appearance is a mid-range cotton-like yarn.
     pub fn preset(name: &str) -> Result<Self, crate::pattern::PatternError> {
         let pattern = WeavePattern::preset(name)?;
-        Ok(ClothParams { pattern, n_p: 3, n_f: 30, r_e: 4.2, r_a: 4.2, appearance: Appearance::default() })
+        Ok(ClothParams {
+            pattern,
+            n_p: 3,
+            n_f: 30,
+            r_e: 4.2,
+            r_a: 4.2,
+            appearance: Appearance::default(),
+            body_texture: None,
+        })
     }
 }
 

@@ -702,7 +702,7 @@ fn mitsuba_loads_the_scene() {
     }
     let dir = tempfile::tempdir().unwrap();
     export(&twill(), dir.path(), &ExportOptions { repeats: Some([1, 1]), ..Default::default() }).unwrap();
-    let script = "import mitsuba as mi, sys\nmi.set_variant('llvm_ad_rgb')\ns = mi.load_file(sys.argv[1])\n\
+    let script = "import mitsuba as mi, sys\nmi.set_variant('scalar_rgb')\ns = mi.load_file(sys.argv[1])\n\
                   img = mi.render(s, spp=4)\nprint(img.shape)";
     let st = std::process::Command::new("python3")
         .args(["-c", script, dir.path().join("scene.xml").to_str().unwrap()])

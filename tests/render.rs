@@ -213,3 +213,44 @@ fn one_periodic_tile_renders_like_the_whole_fabric() {
     let close = diffs.iter().filter(|&&d| d < 1e-3).count();
     assert!(close as f32 >= 0.97 * diffs.len() as f32, "only {close}/{} pixels match", diffs.len());
 }
+
+#[test]
+fn body_texture_of_ones_changes_nothing_and_its_texel_derivatives_are_exact() {
+    use woven::params::BodyTexture;
+    let mut cloth = ClothParams::preset("twill22").unwrap();
+    let scene = small_scene(16, 2);
+    let plain = render(&cloth, &scene, &RenderOptions::default());
+    cloth.body_texture = Some(BodyTexture::ones(4, 4, 2));
+    let ones = render(&cloth, &scene, &RenderOptions::default());
+    assert!(plain.rmse(&ones) < 1e-6);
+    // Scaling one texel by (1 + h) moves each pixel by h × its reported part (body radiance is linear
+    // in the multiplier).
+    let prep = Prepared::new(&cloth, &scene, &RenderOptions::default());
+    let cache = prep.record(&cloth.appearance);
+    let tex = BodyTexture::ones(4, 4, 2);
+    let (base, parts) = cache.shade_texture_parts(&cloth.appearance, &tex);
+    let slot = parts.iter().max_by(|a, b| a.2[0].total_cmp(&b.2[0])).unwrap().1;
+    let mut t2 = tex.clone();
+    let i = slot as usize / 2;
+    let h = 0.5f32;
+    if slot % 2 == 0 {
+        t2.weft[i] = [1.0 + h; 3];
+    } else {
+        t2.warp[i] = [1.0 + h; 3];
+    }
+    let (moved, _) = cache.shade_texture_parts(&cloth.appearance, &t2);
+    let mut predicted = base.data.clone();
+    for (px, s, rgb) in &parts {
+        if *s == slot {
+            (0..3).for_each(|k| predicted[*px as usize][k] += h * rgb[k]);
+        }
+    }
+    let err = moved
+        .data
+        .iter()
+        .zip(&predicted)
+        .map(|(a, b)| (0..3).map(|k| (a[k] - b[k]).abs()).fold(0.0, f32::max))
+        .fold(0.0, f32::max);
+    assert!(err < 1e-5, "texel linearity error {err}");
+    assert!(moved.rmse(&base) > 1e-4, "the texel must change the image");
+}

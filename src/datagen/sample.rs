@@ -153,7 +153,8 @@ impl Recipe {
             let base = r.name.split('[').next().expect("name");
             v[k] = draw_f32(&mut rng, &pr.span(base)).clamp(r.min, r.max);
         }
-        let cloth = ClothParams { pattern, n_p, n_f, r_e, r_a, appearance: Appearance::from_slice(&v) };
+        let cloth =
+            ClothParams { pattern, n_p, n_f, r_e, r_a, appearance: Appearance::from_slice(&v), body_texture: None };
 
         // Camera.
         let c = &self.camera;

@@ -66,6 +66,10 @@ pub struct FitArgs {
     /// Do not add the estimated photo noise (noise.json) to fit.png.
     #[arg(long)]
     pub no_noise: bool,
+    /// Spatially varying body colour (paper §7.2): fit a colour multiplier per yarn cell (finer texels
+    /// fit the render noise of the recorded paths instead of the cloth).
+    #[arg(long)]
+    pub svcolor: bool,
 }
 
 impl FitArgs {
@@ -89,6 +93,7 @@ impl FitArgs {
             threads: None,
             fast: false,
             no_noise: false,
+            svcolor: false,
         }
     }
 
@@ -120,6 +125,7 @@ impl FitArgs {
             energy_scale: self.energy_scale,
             threads: self.threads,
             progress: true,
+            svcolor: if self.svcolor { 1 } else { 0 },
             ..base
         })
     }
@@ -246,7 +252,7 @@ pub fn demo_cloth() -> ClothParams {
         g_p: 0.5,
         g_f: 0.35,
     };
-    ClothParams { pattern, n_p: 4, n_f: 36, r_e: 4.4, r_a: 3.8, appearance }
+    ClothParams { pattern, n_p: 4, n_f: 36, r_e: 4.4, r_a: 3.8, appearance, body_texture: None }
 }
 
 fn fmt_table(fit: &ClothParams, truth: &ClothParams) -> String {
@@ -404,6 +410,7 @@ pub fn random_cloth(rng: &mut StdRng, max_side: usize) -> ClothParams {
         r_e: rng.random_range(2.5f32..=5.0),
         r_a: rng.random_range(2.5f32..=5.0),
         appearance: Appearance::from_slice(&v),
+        body_texture: None,
     }
 }
 

@@ -90,6 +90,9 @@ pub struct FitOptions {
     pub energy_scale: Option<f64>,
     /// Greedy pass over all cells with the final appearance.
     pub polish: bool,
+    /// Spatially varying body colour (paper §7.2): after the joint loop, optimise per-texel
+    /// multipliers of R^B/S^B (this many texels per cell side; 0 = off).
+    pub svcolor: u32,
     /// Render and proposal seed.
     pub seed: u64,
     /// Light rig of the fit scene.
@@ -128,6 +131,7 @@ impl Default for FitOptions {
             decay: anneal::DECAY,
             energy_scale: None,
             polish: true,
+            svcolor: 0,
             seed: 1,
             lights: LightRig::default_rig(),
             model: Some(PathBuf::from("models/pre_estimator.safetensors")),
@@ -399,6 +403,54 @@ fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, c: u32, max_sweeps: us
             break;
         }
     }
+}
+
+/// Optimise a body-colour texture (multipliers, `k` texels per cell, initialised to ones) for
+/// `cloth` by Adam on the fit loss, using the texel derivatives of the recorded paths.
+fn fit_texture(ev: &Evaluator, cloth: &ClothParams, k: u32, iters: usize) -> crate::params::BodyTexture {
+    let mut tex = crate::params::BodyTexture::ones(cloth.pattern.n_e(), cloth.pattern.n_a(), k);
+    let mut plain = cloth.clone();
+    plain.body_texture = None;
+    let cache = ev.record(&plain);
+    let n_tex = tex.weft.len();
+    // Interleaved like the texel slots: weft texel i at 2i, warp texel i at 2i + 1, RGB each.
+    let mut x: Vec<f32> = vec![1.0; 2 * n_tex * 3];
+    let mut adam = Adam::new(x.len());
+    let b = ev.b;
+    for it in 0..iters {
+        let (img, parts) = cache.shade_texture_parts(&cloth.appearance, &tex);
+        let (w, h) = (img.width, img.height);
+        let (bw, bh) = (w / b, h / b);
+        let f = block_filter(&img, b);
+        let n = (f.len() * 3).max(1) as f32;
+        let inv = 1.0 / (b * b) as f32;
+        let mut g = vec![0.0f32; x.len()];
+        for (px, slot, rgb) in parts {
+            let (xx, yy) = (px % w, px / w);
+            if xx >= bw * b || yy >= bh * b {
+                continue;
+            }
+            let fi = ((yy / b) * bw + xx / b) as usize;
+            let v = img.data[px as usize];
+            for c in 0..3 {
+                if v[c] > 0.0 && v[c] < 1.0 {
+                    g[slot as usize * 3 + c] += 2.0 * (f[fi][c] - ev.target_f[fi][c]) / n * inv * rgb[c];
+                }
+            }
+        }
+        let lr = vec![0.05f32 * 0.3f32.powf(it as f32 / iters as f32); x.len()];
+        let free = vec![true; x.len()];
+        adam.step(&mut x, &g, &lr, &free);
+        x.iter_mut().for_each(|v| *v = v.clamp(0.0, 4.0));
+        // slots interleave weft/warp per texel: slot 2i = weft texel i, 2i+1 = warp texel i.
+        for i in 0..n_tex {
+            for c in 0..3 {
+                tex.weft[i][c] = x[(2 * i) * 3 + c];
+                tex.warp[i][c] = x[(2 * i + 1) * 3 + c];
+            }
+        }
+    }
+    tex
 }
 
 /// The named weaves (presets and their 90° rotations) that fit an `n_e × n_a` grid (tiled when
@@ -691,8 +743,15 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         Some(p) => unreduced(p),
         None => default_twill(n_e, n_a),
     };
-    let mut cloth =
-        ClothParams { pattern: pattern0, n_p: 3, n_f: 30, r_e: 4.0, r_a: 4.0, appearance: grey_appearance() };
+    let mut cloth = ClothParams {
+        pattern: pattern0,
+        n_p: 3,
+        n_f: 30,
+        r_e: 4.0,
+        r_a: 4.0,
+        appearance: grey_appearance(),
+        body_texture: None,
+    };
     if opts.pre_estimate {
         let cp = opts.pre_px_per_cell;
         let pre_scene = fit_scene(n_e, n_a, cp, opts.pre_spp, opts.seed, &opts.lights);
@@ -953,6 +1012,9 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         secs: t_start.elapsed().as_secs_f64(),
         cloth: best_cloth.clone(),
     });
+    if opts.svcolor > 0 && !stopped {
+        best_cloth.body_texture = Some(fit_texture(&ev, &best_cloth, opts.svcolor, 60));
+    }
     let t_opt = t_start.elapsed().as_secs_f64() - t_prep - t_pre;
 
     // Final render of the best state.
@@ -962,7 +1024,9 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     final_scene.seed = opts.seed.wrapping_add(7);
     let render = Prepared::new(&best_cloth, &final_scene, &RenderOptions::default()).render(&best_cloth.appearance);
     let psnr_db = render.psnr_srgb(&tgt);
-    let reduced = best_cloth.pattern.reduced();
+    // A body texture is laid over the fit grid, so the pattern keeps that grid.
+    let reduced =
+        if best_cloth.body_texture.is_some() { best_cloth.pattern.clone() } else { best_cloth.pattern.reduced() };
     let mut out_cloth = best_cloth.clone();
     out_cloth.pattern = reduced.clone();
     let out_scene =

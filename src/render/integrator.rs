@@ -53,6 +53,8 @@ pub struct PathVertex {
     pub refr: Option<(Vec3, f32)>,
     /// Russian-roulette weight `1/q` applied after the refraction (1 if no roulette).
     pub rr: f32,
+    /// Position in the tile as fractions (u along x, v along y) for body-colour textures.
+    pub uv: [f32; 2],
 }
 
 /// A recorded path sample: escaped radiance plus vertices.
@@ -121,6 +123,11 @@ pub fn sample_rng(seed: u64, pixel: u64, sample: u64) -> SmallRng {
 }
 
 impl Tracer<'_> {
+    fn uv(&self, p: Vec3) -> [f32; 2] {
+        let q = self.geom.wrap(p);
+        [q.x / self.geom.set.tile_x, q.y / self.geom.set.tile_y]
+    }
+
     fn tube_normal(&self, yarn: usize, p: Vec3) -> Vec3 {
         let y = &self.geom.set.yarns[yarn];
         let s = y.closest_s(p);
@@ -251,6 +258,7 @@ impl Tracer<'_> {
                 lights,
                 refr: None,
                 rr: 1.0,
+                uv: self.uv(hit.p),
             };
             if !self.transmission || buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vx);
@@ -295,6 +303,7 @@ impl Tracer<'_> {
                 lights,
                 refr: None,
                 rr: 1.0,
+                uv: self.uv(yt),
             };
             if buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vyx);

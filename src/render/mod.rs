@@ -13,7 +13,7 @@ use crate::geometry::ply::PlyModel;
 use crate::geometry::tile::TileGeometry;
 use crate::geometry::yarn::YarnSet;
 use crate::image_io::Image;
-use crate::params::{Appearance, ClothParams, N_APPEARANCE};
+use crate::params::{Appearance, BodyTexture, ClothParams, N_APPEARANCE};
 use crate::pattern::WeavePattern;
 use crate::scene::Scene;
 use crate::shading::bysdf::ShadeParams;
@@ -54,6 +54,8 @@ pub struct Prepared {
     pub plies: PlyModel,
     /// Whether transmission paths are traced.
     pub transmission: bool,
+    /// Spatially varying body colour of the cloth.
+    pub texture: Option<BodyTexture>,
     window: (u32, u32, u32, u32),
     spp: u32,
     seed: u64,
@@ -86,6 +88,7 @@ impl Prepared {
             camera,
             plies: PlyModel { n_p: cloth.n_p, n_f: cloth.n_f },
             transmission,
+            texture: cloth.body_texture.clone(),
             window,
             spp: scene.spp,
             seed: scene.seed,
@@ -140,7 +143,8 @@ impl Prepared {
                     let mut rng = sample_rng(self.seed, self.pixel_index(x, y), s as u64);
                     let (jx, jy) = self.jitter(s, &mut rng);
                     tracer.trace(x as f32 + jx, y as f32 + jy, &mut rng, &mut buf);
-                    let l = shade::shade_path(&sp, buf.background, &buf.verts, &buf.lights);
+                    let l =
+                        shade::shade_path(&sp, buf.background, &buf.verts, &buf.lights, self.texture.as_ref(), None);
                     (0..3).for_each(|k| acc[k] += l[k]);
                 }
                 *px = acc.map(|v| v * self.exposure / self.spp as f32);
@@ -171,7 +175,7 @@ impl Prepared {
                 rc
             })
             .collect();
-        PathCache { width: w, height: h, spp: self.spp, exposure: self.exposure, rows }
+        PathCache { width: w, height: h, spp: self.spp, exposure: self.exposure, rows, texture: self.texture.clone() }
     }
 }
 
@@ -196,10 +200,10 @@ impl RowCache {
         self.samples.push((col, buf.background, v0, buf.verts.len() as u32));
     }
 
-    fn shade<T: Real + Send>(&self, p: &ShadeParams<T>, w: u32, scale: f32) -> Vec<[T; 3]> {
+    fn shade<T: Real + Send>(&self, p: &ShadeParams<T>, w: u32, scale: f32, tex: Option<&BodyTexture>) -> Vec<[T; 3]> {
         let mut out = vec![[T::c(0.0); 3]; w as usize];
         for &(col, bg, v0, nv) in &self.samples {
-            let l = shade::shade_path(p, bg, &self.verts[v0 as usize..(v0 + nv) as usize], &self.lights);
+            let l = shade::shade_path(p, bg, &self.verts[v0 as usize..(v0 + nv) as usize], &self.lights, tex, None);
             for k in 0..3 {
                 out[col as usize][k] += l[k] * scale;
             }
@@ -208,6 +212,9 @@ impl RowCache {
     }
 }
 
+/// `(pixel, texel slot, rgb)`: the part of a pixel that is linear in one texel's body multiplier.
+pub type TexturePart = (u32, u32, [f32; 3]);
+
 /// The recorded paths of a render: re-shade for new appearance without re-tracing.
 pub struct PathCache {
     width: u32,
@@ -215,6 +222,7 @@ pub struct PathCache {
     spp: u32,
     exposure: f32,
     rows: Vec<RowCache>,
+    texture: Option<BodyTexture>,
 }
 
 impl PathCache {
@@ -232,8 +240,51 @@ impl PathCache {
     pub fn shade(&self, a: &Appearance) -> Image {
         let sp = ShadeParams::new(a);
         let scale = self.exposure / self.spp as f32;
-        let data: Vec<[f32; 3]> = self.rows.par_iter().flat_map_iter(|r| r.shade(&sp, self.width, scale)).collect();
+        let tex = self.texture.as_ref();
+        let data: Vec<[f32; 3]> =
+            self.rows.par_iter().flat_map_iter(|r| r.shade(&sp, self.width, scale, tex)).collect();
         Image::new(self.width, self.height, data)
+    }
+
+    /// Re-shade with a body-colour texture and return, for every pixel, the radiance that is linear
+    /// in each texel's multiplier: `(pixel, slot, rgb)` with slot `2·texel` (weft) or `2·texel + 1`
+    /// (warp). ∂pixel/∂multiplier = rgb, so any image loss gets its texel gradient from these.
+    pub fn shade_texture_parts(&self, a: &Appearance, tex: &BodyTexture) -> (Image, Vec<TexturePart>) {
+        let sp = ShadeParams::new(a);
+        let scale = self.exposure / self.spp as f32;
+        let w = self.width;
+        let rows: Vec<(Vec<[f32; 3]>, Vec<TexturePart>)> = self
+            .rows
+            .par_iter()
+            .enumerate()
+            .map(|(row, r)| {
+                let mut out = vec![[0.0f32; 3]; w as usize];
+                let mut parts = Vec::new();
+                let mut acc = Vec::new();
+                for &(col, bg, v0, nv) in &r.samples {
+                    acc.clear();
+                    let l = shade::shade_path(
+                        &sp,
+                        bg,
+                        &r.verts[v0 as usize..(v0 + nv) as usize],
+                        &r.lights,
+                        Some(tex),
+                        Some(&mut acc),
+                    );
+                    (0..3).for_each(|k| out[col as usize][k] += l[k] * scale);
+                    let px = row as u32 * w + col;
+                    parts.extend(acc.iter().map(|(slot, b)| (px, *slot as u32, b.map(|x| x * scale))));
+                }
+                (out, parts)
+            })
+            .collect();
+        let mut data = Vec::with_capacity((w * self.height) as usize);
+        let mut parts = Vec::new();
+        for (d, p) in rows {
+            data.extend(d);
+            parts.extend(p);
+        }
+        (Image::new(w, self.height, data), parts)
     }
 
     /// Re-shade with exact derivatives: per pixel and channel the value and ∂/∂θ for all
@@ -241,7 +292,8 @@ impl PathCache {
     pub fn shade_with_derivatives(&self, a: &Appearance) -> Vec<[Dual<N_APPEARANCE>; 3]> {
         let sp = ShadeParams::with_derivatives(a);
         let scale = self.exposure / self.spp as f32;
-        self.rows.par_iter().flat_map_iter(|r| r.shade(&sp, self.width, scale)).collect()
+        let tex = self.texture.as_ref();
+        self.rows.par_iter().flat_map_iter(|r| r.shade(&sp, self.width, scale, tex)).collect()
     }
 
     /// Mean squared error against `target` and its exact gradient with respect to the appearance
@@ -255,7 +307,7 @@ impl PathCache {
             .par_iter()
             .enumerate()
             .map(|(row, r)| {
-                let px = r.shade(&sp, self.width, scale);
+                let px = r.shade(&sp, self.width, scale, self.texture.as_ref());
                 let mut loss = 0.0f32;
                 let mut g = [0.0f32; N_APPEARANCE];
                 for (col, p) in px.iter().enumerate() {
