@@ -21,6 +21,7 @@ pub mod net;
 pub mod noise;
 pub mod params;
 pub mod pattern;
+pub mod plot;
 pub mod pre;
 pub mod prep;
 pub mod render;

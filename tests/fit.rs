@@ -148,7 +148,7 @@ fn stop_flag_keeps_best_and_writes_files() {
     let min_seen = res.history.iter().map(|l| l.loss).fold(f32::MAX, f32::min);
     assert!(res.best_loss <= min_seen + 1e-9, "best {} > min seen {}", res.best_loss, min_seen);
     let dir = tempfile::tempdir().unwrap();
-    output::write_outputs(&res, &target, dir.path(), Some(2)).unwrap();
+    output::write_outputs(&res, dir.path(), Some(2), None).unwrap();
     for f in ["fit.json", "fit.png", "compare.png", "trace.png", "log.jsonl"] {
         assert!(dir.path().join(f).is_file(), "{f} missing");
     }

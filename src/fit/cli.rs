@@ -157,8 +157,7 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     for w in &res.warnings {
         eprintln!("warning: {w}");
     }
-    output::write_outputs(&res, &input, &args.out, args.threads)?;
-    finish_outputs(&res, &args.out, !args.no_noise, args.threads)?;
+    write_fit_outputs(&res, &args.out, !args.no_noise, args.threads)?;
     let c = &res.params.cloth;
     println!(
         "{}{}: pattern {} ({}×{}), n_p {}, n_f {}, r_e {:.2}, r_a {:.2}, PSNR {:.2} dB, {:.1} s (prep {:.1}, pre {:.1}, opt {:.1}) -> {}",
@@ -181,29 +180,24 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     Ok(())
 }
 
-/// Noise post-estimation (paper §6.3) and geometry export beside `fit.json`: with preparation, the
+/// Every output of a fit in `dir`: with preparation, noise post-estimation (paper §6.3) — the
 /// residual rectified − regularized gives `noise.json`, whose synthesized noise is added to `fit.png`
-/// (unless `noise` is false); the yarn curves go to `export/` (PLY + Mitsuba 3 scene).
-pub fn finish_outputs(res: &FitResult, dir: &Path, noise: bool, threads: Option<usize>) -> Result<()> {
+/// unless `add_noise` is false — then the files of [`output::write_outputs`] and the yarn geometry in
+/// `export/` (PLY + Mitsuba 3 scene).
+pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: Option<usize>) -> Result<()> {
+    let mut noise = None;
     if let Some(p) = &res.prep {
         let rect = Image::from_rgb32f(&p.rectified);
         let reg = Image::from_rgb32f(&p.regularized);
         match crate::noise::residual(&rect, &reg).and_then(|r| crate::noise::NoiseModel::fit(&r)) {
             Ok(model) => {
                 model.save(&dir.join("noise.json"))?;
-                if noise {
-                    let mut img = crate::render::render(
-                        &res.params.cloth,
-                        &res.params.scene,
-                        &crate::render::RenderOptions { threads, ..Default::default() },
-                    );
-                    model.add_to(&mut img, res.params.scene.seed);
-                    img.save_png(&dir.join("fit.png"))?;
-                }
+                noise = Some(model);
             }
             Err(e) => eprintln!("warning: no noise model ({e})"),
         }
     }
+    output::write_outputs(res, dir, threads, noise.as_ref().filter(|_| add_noise))?;
     crate::export::export(&res.params, &dir.join("export"), &crate::export::ExportOptions::default())
         .context("exporting the yarn geometry")?;
     Ok(())
@@ -297,8 +291,7 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     std::fs::create_dir_all(out_dir)?;
     target.save_png(&out_dir.join("target.png"))?;
     let res = fit(&target, &opts)?;
-    output::write_outputs(&res, &target, out_dir, opts.threads)?;
-    finish_outputs(&res, out_dir, false, opts.threads)?;
+    write_fit_outputs(&res, out_dir, false, opts.threads)?;
     let exact = res.cloth.pattern.reduced().equivalent(&truth.pattern);
     println!("{}", fmt_table(&res.cloth, &truth));
     println!(

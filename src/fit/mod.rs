@@ -371,16 +371,19 @@ impl Evaluator {
     }
 }
 
+/// Loss of a candidate pattern during pre-estimation: trace it, give it its own colour estimate
+/// (written into `cand`), re-shade.
+fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f32 {
+    let cache = ev.record(cand);
+    fit_colours(ev, cand, &cache, c);
+    ev.mse_of(&cache.shade(&cand.appearance))
+}
+
 /// Greedy pattern sweeps at temperature 0: toggle each cell, keep it when the loss drops; repeat
 /// until a sweep changes nothing. Every candidate pattern gets its own colour pre-estimate (from the
 /// same recorded paths), so the sweep compares structure, not a grey guess against coloured yarns.
 fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, c: u32, max_sweeps: usize, stop: &AtomicBool) {
-    let eval = |cand: &mut ClothParams| -> f32 {
-        let cache = ev.record(cand);
-        fit_colours(ev, cand, &cache, c);
-        ev.mse_of(&cache.shade(&cand.appearance))
-    };
-    let mut cur = eval(cloth);
+    let mut cur = pattern_loss(ev, cloth, c);
     for _ in 0..max_sweeps {
         let mut changed = false;
         for i in 0..cloth.pattern.n_e() {
@@ -393,7 +396,7 @@ fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, c: u32, max_sweeps: us
                 if cand.pattern.has_unbound_yarn() && !cloth.pattern.has_unbound_yarn() {
                     continue;
                 }
-                let l = eval(&mut cand);
+                let l = pattern_loss(ev, &mut cand, c);
                 if l < cur {
                     *cloth = cand;
                     cur = l;
@@ -484,19 +487,14 @@ pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
 /// Template matching of the pattern pre-estimation: try every named weave that fits the grid, in
 /// every shift, each with its own colour estimate; keep the best if it beats the current pattern.
 fn match_templates(ev: &Evaluator, cloth: &mut ClothParams, c: u32, stop: &AtomicBool) {
-    let eval = |cand: &mut ClothParams| -> f32 {
-        let cache = ev.record(cand);
-        fit_colours(ev, cand, &cache, c);
-        ev.mse_of(&cache.shade(&cand.appearance))
-    };
-    let mut cur = eval(cloth);
+    let mut cur = pattern_loss(ev, cloth, c);
     for p in template_candidates(cloth.pattern.n_e(), cloth.pattern.n_a()) {
         if stop.load(Ordering::Relaxed) {
             return;
         }
         let mut cand = cloth.clone();
         cand.pattern = p;
-        let l = eval(&mut cand);
+        let l = pattern_loss(ev, &mut cand, c);
         if l < cur {
             cur = l;
             *cloth = cand;

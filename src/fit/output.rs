@@ -2,29 +2,11 @@
 
 use super::FitResult;
 use crate::image_io::Image;
+use crate::plot::{register_font, write_rgb_png as write_png};
 use crate::render::{render, RenderOptions};
 use anyhow::{Context, Result};
 use plotters::prelude::*;
-use plotters::style::FontStyle;
 use std::path::Path;
-use std::sync::Once;
-
-fn register_font() {
-    static ONCE: Once = Once::new();
-    ONCE.call_once(|| {
-        let bytes: &'static [u8] = include_bytes!("../../assets/DejaVuSans.ttf");
-        // Cannot fail for the bundled font; if it did, text would simply not be drawn.
-        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, bytes);
-    });
-}
-
-fn write_png(path: &Path, w: u32, h: u32, buf: Vec<u8>) -> Result<()> {
-    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer size")?;
-    let mut png = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-        .with_context(|| format!("encoding {}", path.display()))?;
-    crate::io::write_atomic(path, &png).with_context(|| format!("writing {}", path.display()))
-}
 
 /// Nearest-neighbour upscale by an integer factor.
 fn upscale(img: &Image, f: u32) -> Image {
@@ -178,7 +160,12 @@ pub fn write_trace(res: &FitResult, path: &Path) -> Result<()> {
 }
 
 /// Write every output of a fit into `dir` (created). `input` is the image the fit was given.
-pub fn write_outputs(res: &FitResult, input: &Image, dir: &Path, threads: Option<usize>) -> Result<()> {
+pub fn write_outputs(
+    res: &FitResult,
+    dir: &Path,
+    threads: Option<usize>,
+    noise: Option<&crate::noise::NoiseModel>,
+) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     res.params.save(&dir.join("fit.json")).with_context(|| format!("writing {}", dir.join("fit.json").display()))?;
     if let Some(p) = &res.prep {
@@ -190,8 +177,10 @@ pub fn write_outputs(res: &FitResult, input: &Image, dir: &Path, threads: Option
         log.push('\n');
     }
     crate::io::write_atomic(&dir.join("log.jsonl"), log.as_bytes())?;
-    let _ = input;
-    let full = render(&res.params.cloth, &res.params.scene, &RenderOptions { threads, ..Default::default() });
+    let mut full = render(&res.params.cloth, &res.params.scene, &RenderOptions { threads, ..Default::default() });
+    if let Some(m) = noise {
+        m.add_to(&mut full, res.params.scene.seed);
+    }
     full.save_png(&dir.join("fit.png"))?;
     write_compare(res, &dir.join("compare.png"))?;
     write_trace(res, &dir.join("trace.png"))?;

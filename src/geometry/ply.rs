@@ -190,7 +190,7 @@ impl PlyModel {
         let s = yarn.closest_s(q);
         let f = yarn.frame(s);
         let (rp, ring, _) = self.layout(yarn.radius);
-        let (kappa, _) = self.twists(yarn);
+        let (kappa, kappa_f) = self.twists(yarn);
         let rel = q - f.c;
         let a = Vec2::new(rel.dot(f.ex), rel.dot(f.ey));
         let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
@@ -240,6 +240,7 @@ impl PlyModel {
             rp,
             ring,
             kappa,
+            kappa_f,
             frame: f,
         })
     }
@@ -261,7 +262,7 @@ impl PlyModel {
         // Fiber table at θ_f = u_p + κ_f ℓ_p (ply azimuth + fiber twist × ply arc length).
         let u_p = n2.y.atan2(n2.x) - l.beta;
         let ell_p = f.arc * (1.0 + (l.ring * l.kappa).powi(2)).sqrt();
-        let (_, kappa_f) = self.twists(yarn);
+        let kappa_f = l.kappa_f;
         let theta_f = u_p + kappa_f * ell_p;
         let fib = fiber_table(self.n_f);
         let pert = CrossSection::lookup(&fib.pert, theta_f);
@@ -284,6 +285,7 @@ struct PlyLocal {
     rp: f32,
     ring: f32,
     kappa: f32,
+    kappa_f: f32,
     frame: super::yarn::YarnFrame,
 }
 

@@ -17,7 +17,7 @@ use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 const META_CHECKSUM: &str = "woven.checksum";
@@ -263,18 +263,9 @@ pub(crate) fn decode_f32(view: &TensorView) -> Result<Vec<f32>> {
     Ok(view.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
 }
 
-/// Write `bytes` to `path` atomically (temporary file in the same directory, then rename).
+/// Write `bytes` to `path` atomically ([`crate::io::write_atomic`]) with the path in the error.
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let mut tmp: PathBuf = path.to_path_buf();
-    let name = path
-        .file_name()
-        .with_context(|| format!("{} has no file name", path.display()))?
-        .to_string_lossy()
-        .into_owned();
-    tmp.set_file_name(format!(".{name}.tmp{}", std::process::id()));
-    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
-    Ok(())
+    crate::io::write_atomic(path, bytes).with_context(|| format!("writing {}", path.display()))
 }
 
 /// Serialise tensors (F32) with metadata plus a checksum, and write them atomically.
@@ -303,6 +294,7 @@ mod tests {
     use crate::net::train;
     use crate::net::train::save_model;
     use crate::net::train::tests::{stripe_samples, tiny_cfg, tiny_spec};
+    use std::path::PathBuf;
 
     fn trained() -> (tempfile::TempDir, PathBuf) {
         let dir = tempfile::tempdir().unwrap();

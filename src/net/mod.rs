@@ -269,14 +269,7 @@ impl NetSpec {
     }
 }
 
-/// sRGB transfer curve (linear → encoded), for `c` in `[0,1]`.
-pub fn linear_to_srgb(c: f32) -> f32 {
-    if c <= 0.003_130_8 {
-        12.92 * c
-    } else {
-        1.055 * c.powf(1.0 / 2.4) - 0.055
-    }
-}
+pub use crate::image_io::linear_to_srgb;
 
 /// Check that an image is usable: at least [`MIN_IMAGE_SIZE`] px each way, finite values.
 pub fn check_image(img: &Rgb32FImage) -> Result<(), NetError> {

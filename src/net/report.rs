@@ -11,12 +11,11 @@
 //!   ≥ [`NOT_IDENTIFIABLE`] × baseline (0.2 of the range for uniform targets, 0.6 of chance)
 //!   are flagged "not identifiable from the image".
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use plotters::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::Path;
-use std::sync::Once;
 
 /// Error/baseline ratio from which an output counts as not identifiable from the image.
 pub const NOT_IDENTIFIABLE: f32 = 0.8;
@@ -220,7 +219,7 @@ impl TrainReport {
 
     /// Plot train and validation loss per epoch into a PNG (800×500).
     pub fn write_curves_png(&self, path: &Path) -> Result<()> {
-        register_font();
+        crate::plot::register_font();
         let (w, h) = (800u32, 500u32);
         let mut buf = vec![0u8; (w * h * 3) as usize];
         let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting the loss curves: {e}");
@@ -272,21 +271,8 @@ impl TrainReport {
                 .map_err(|e| err(&e))?;
             root.present().map_err(|e| err(&e))?;
         }
-        let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer size")?;
-        let mut png = Vec::new();
-        img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png).context("encoding the loss plot")?;
-        super::infer::write_atomic(path, &png)
+        crate::plot::write_rgb_png(path, w, h, buf)
     }
-}
-
-static FONT: Once = Once::new();
-
-fn register_font() {
-    FONT.call_once(|| {
-        let bytes: &'static [u8] = include_bytes!("../../assets/DejaVuSans.ttf");
-        // Cannot fail for the bundled font; if it did, text would simply not be drawn.
-        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, bytes);
-    });
 }
 
 #[cfg(test)]

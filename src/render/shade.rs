@@ -10,11 +10,12 @@ use crate::shading::bysdf::{attenuation, eval, LocalDirs, ShadeParams, VertexKin
 use crate::shading::ggx::transmit_cos;
 use crate::shading::real::Real;
 
-/// Body-colour multiplier at a vertex (1 without a texture).
+/// Family and texel index of a vertex in the body-colour texture (`None` without a texture).
 pub fn texel_of(tex: Option<&BodyTexture>, vx: &PathVertex) -> Option<(Family, usize)> {
     tex.map(|t| (vx.family, t.texel(vx.uv[0], vx.uv[1])))
 }
 
+/// Body-colour multiplier at a vertex (1 without a texture).
 fn multiplier(tex: Option<&BodyTexture>, vx: &PathVertex) -> [f32; 3] {
     match (tex, texel_of(tex, vx)) {
         (Some(t), Some((Family::Weft, i))) => t.weft[i],

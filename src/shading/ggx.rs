@@ -153,23 +153,37 @@ pub fn sample_vndf(v: Vec3, alpha: f32, u1: f32, u2: f32) -> Vec3 {
     Vec3::new(alpha * nh.x, alpha * nh.y, nh.z.max(1e-6)).normalize()
 }
 
+/// A visible microfacet normal sampled for a direction on either side: `v` mirrored to the upper
+/// side (`vl`, `flip` says whether it was), the clamped roughness, the normal `h` and `vl·h > 0`.
+struct VisibleNormal {
+    alpha: f32,
+    flip: bool,
+    vl: Vec3,
+    h: Vec3,
+    vh: f32,
+}
+
+impl VisibleNormal {
+    fn sample(v: Vec3, alpha: f32, u1: f32, u2: f32) -> Option<Self> {
+        let alpha = alpha.clamp(ALPHA_MIN, 1.0);
+        let flip = v.z < 0.0;
+        let vl = if flip { -v } else { v };
+        if vl.z < 1e-7 {
+            return None;
+        }
+        let h = sample_vndf(vl, alpha, u1, u2);
+        let vh = vl.dot(h);
+        (vh > 0.0).then_some(VisibleNormal { alpha, flip, vl, h, vh })
+    }
+}
+
 /// Sample a refracted direction for `v` (either side), returning `(l, pdf(l))`, or `None` on total
 /// internal reflection / a degenerate sample. The pdf matches [`transmit_cos`]'s lobe so that
 /// `transmit_cos / pdf = (1−F)·G2/G1(v)`.
 pub fn sample_transmission(v: Vec3, alpha: f32, eta: f32, u1: f32, u2: f32) -> Option<(Vec3, f32)> {
-    let alpha = alpha.clamp(ALPHA_MIN, 1.0);
-    let flip = v.z < 0.0;
-    let vl = if flip { -v } else { v };
-    if vl.z < 1e-7 {
-        return None;
-    }
-    let h = sample_vndf(vl, alpha, u1, u2);
+    let VisibleNormal { alpha, flip, vl, h, vh: ci } = VisibleNormal::sample(v, alpha, u1, u2)?;
     let (eta_v, eta_l) = if flip { (eta, 1.0) } else { (1.0, eta) };
     let ratio = eta_v / eta_l;
-    let ci = vl.dot(h);
-    if ci <= 0.0 {
-        return None;
-    }
     let sin2_t = ratio * ratio * (1.0 - ci * ci);
     if sin2_t >= 1.0 {
         return None;
@@ -189,17 +203,7 @@ pub fn sample_transmission(v: Vec3, alpha: f32, eta: f32, u1: f32, u2: f32) -> O
 
 /// Sample a reflected direction for `v` (either side) by visible normals; returns `(l, pdf(l))`.
 pub fn sample_reflection(v: Vec3, alpha: f32, u1: f32, u2: f32) -> Option<(Vec3, f32)> {
-    let alpha = alpha.clamp(ALPHA_MIN, 1.0);
-    let flip = v.z < 0.0;
-    let vl = if flip { -v } else { v };
-    if vl.z < 1e-7 {
-        return None;
-    }
-    let h = sample_vndf(vl, alpha, u1, u2);
-    let vh = vl.dot(h);
-    if vh <= 0.0 {
-        return None;
-    }
+    let VisibleNormal { alpha, flip, vl, h, vh } = VisibleNormal::sample(v, alpha, u1, u2)?;
     let l = h * (2.0 * vh) - vl;
     if l.z <= 0.0 {
         return None;
