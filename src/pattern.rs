@@ -188,6 +188,13 @@ impl WeavePattern {
         p
     }
 
+    /// Every cell flipped: the same cloth seen from the back (weft and warp swap who is on top).
+    pub fn inverted(&self) -> Self {
+        let mut p = self.clone();
+        p.cells.iter_mut().for_each(|c| *c = !*c);
+        p
+    }
+
     /// Rows as booleans.
     pub fn rows(&self) -> Vec<Vec<bool>> {
         (0..self.rows).map(|i| (0..self.cols).map(|j| self.get(i, j)).collect()).collect()

@@ -210,8 +210,14 @@ fn one_periodic_tile_renders_like_the_whole_fabric() {
         .zip(&whole.data)
         .map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).abs()).fold(0.0, f32::max))
         .collect();
+    // A hit that rounds differently changes that sample's path (and, with the MIS visibility rays,
+    // there are about twice as many rays per sample to diverge), so a few pixels differ.
     let close = diffs.iter().filter(|&&d| d < 1e-3).count();
-    assert!(close as f32 >= 0.97 * diffs.len() as f32, "only {close}/{} pixels match", diffs.len());
+    assert!(close as f32 >= 0.95 * diffs.len() as f32, "only {close}/{} pixels match", diffs.len());
+    let (mt, mw) = (tile.mean(), whole.mean());
+    for k in 0..3 {
+        assert!((mt[k] - mw[k]).abs() < 0.01 * mw[k], "channel {k}: mean {} vs {}", mt[k], mw[k]);
+    }
 }
 
 #[test]

@@ -287,7 +287,7 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     }
     opts.prep = false;
     opts.progress = true;
-    let target = synthetic_target(&truth, opts.px_per_cell, 64, 9_999, opts.threads);
+    let target = synthetic_target(&truth, opts.px_per_cell, 256, 9_999, opts.threads);
     std::fs::create_dir_all(out_dir)?;
     target.save_png(&out_dir.join("target.png"))?;
     let res = fit(&target, &opts)?;
@@ -342,6 +342,9 @@ pub struct EvalArgs {
     /// Pixels per cell (targets and fits).
     #[arg(long, default_value_t = 16)]
     pub px_per_cell: u32,
+    /// Samples per pixel of the target renders (their noise bounds the PSNR a perfect fit reaches).
+    #[arg(long, default_value_t = 256)]
+    pub target_spp: u32,
     /// Largest random pattern side.
     #[arg(long, default_value_t = 5)]
     pub max_side: usize,
@@ -351,6 +354,9 @@ pub struct EvalArgs {
     /// Append the markdown section to this file.
     #[arg(long)]
     pub markdown: Option<PathBuf>,
+    /// Write each target and its fit outputs to DIR/target_<i>/.
+    #[arg(long)]
+    pub save: Option<PathBuf>,
     /// Worker threads.
     #[arg(long)]
     pub threads: Option<usize>,
@@ -364,9 +370,11 @@ impl Default for EvalArgs {
             ablation: Ablation::None,
             iterations: 200,
             px_per_cell: 16,
+            target_spp: 256,
             max_side: 5,
             known_grid: false,
             markdown: None,
+            save: None,
             threads: None,
         }
     }
@@ -560,7 +568,7 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
             Ablation::NoPre => opts.pre_estimate = false,
             Ablation::Separate => opts.mode = FitMode::Separate,
         }
-        let target = synthetic_target(&truth, args.px_per_cell, 32, 50_000 + i as u64, args.threads);
+        let target = synthetic_target(&truth, args.px_per_cell, args.target_spp, 50_000 + i as u64, args.threads);
         let grid_ok;
         if args.known_grid {
             opts.grid = Some((truth.pattern.n_e(), truth.pattern.n_a()));
@@ -587,6 +595,13 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
             }
         };
         let secs = t.elapsed().as_secs_f64();
+        if let Some(dir) = &args.save {
+            let d = dir.join(format!("target_{i}"));
+            std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
+            target.save_png(&d.join("target.png"))?;
+            crate::io::write_atomic(&d.join("truth.json"), serde_json::to_string_pretty(&truth)?.as_bytes())?;
+            write_fit_outputs(&res, &d, false, args.threads)?;
+        }
         let exact = res.params.cloth.pattern.equivalent(&truth.pattern);
         let errors: Vec<f32> = param_errors(&res.cloth, &truth).iter().map(|e| e.1).collect();
         let curve = res

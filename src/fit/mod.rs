@@ -15,6 +15,7 @@
 pub mod anneal;
 pub mod cli;
 pub mod output;
+mod refine;
 pub mod target;
 
 use crate::image_io::Image;
@@ -22,7 +23,7 @@ use crate::params::{Appearance, ClothParams, ParamFile, APPEARANCE_RANGES, NF_RA
 use crate::pattern::WeavePattern;
 use crate::render::{PathCache, Prepared, RenderOptions};
 use crate::scene::{LightRig, Scene};
-use anneal::{Adam, BARRIER_LAMBDA};
+use anneal::Adam;
 use anyhow::{bail, Context, Result};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -68,7 +69,8 @@ pub struct FitOptions {
     pub px_per_cell: u32,
     /// Samples per pixel of the fit renders.
     pub spp: u32,
-    /// Pixels per cell and spp of the pattern pre-estimation renders.
+    /// Pixels per cell of the pattern pre-estimation renders (0: the fit's; coarser renders
+    /// cannot tell a pattern from its inverse with swapped colours).
     pub pre_px_per_cell: u32,
     /// Samples per pixel of the pre-estimation renders.
     pub pre_spp: u32,
@@ -78,6 +80,12 @@ pub struct FitOptions {
     pub loss_block: u32,
     /// Maximum greedy sweeps of the pattern pre-estimation.
     pub max_sweeps: usize,
+    /// Patterns of the candidate ranking that get a warm-up.
+    pub shortlist: usize,
+    /// Gradient steps of each warm-up (pre-estimation, fixed pattern).
+    pub warmup: usize,
+    /// Gradient steps that finish the best state (and the pre-estimate it competes with).
+    pub finish: usize,
     /// Adam step size as a fraction of each parameter's range.
     pub lr: f32,
     /// Radii step every this many iterations (0: radii fixed).
@@ -120,10 +128,13 @@ impl Default for FitOptions {
             iterations: 300,
             px_per_cell: 16,
             spp: 4,
-            pre_px_per_cell: 8,
+            pre_px_per_cell: 0,
             pre_spp: 2,
-            final_spp: 16,
-            max_sweeps: 4,
+            final_spp: 64,
+            max_sweeps: 2,
+            shortlist: 3,
+            warmup: 20,
+            finish: 30,
             loss_block: 2,
             lr: 0.03,
             radius_every: 4,
@@ -152,9 +163,9 @@ impl FitOptions {
             iterations: 120,
             px_per_cell: 10,
             spp: 4,
-            pre_px_per_cell: 8,
-            pre_spp: 4,
-            final_spp: 16,
+            pre_px_per_cell: 0,
+            pre_spp: 2,
+            final_spp: 64,
             ..Default::default()
         }
     }
@@ -324,10 +335,6 @@ impl Evaluator {
         self.retraces.set(self.retraces.get() + 1);
         Prepared::new(cloth, &self.scene, &self.opts).record(&cloth.appearance)
     }
-    fn render(&self, cloth: &ClothParams) -> Image {
-        self.retraces.set(self.retraces.get() + 1);
-        Prepared::new(cloth, &self.scene, &self.opts).render(&cloth.appearance)
-    }
     /// Loss of a rendered image.
     fn mse_of(&self, img: &Image) -> f32 {
         let f = block_filter(img, self.b);
@@ -379,24 +386,29 @@ fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f32 {
     ev.mse_of(&cache.shade(&cand.appearance))
 }
 
-/// Greedy pattern sweeps at temperature 0: toggle each cell, keep it when the loss drops; repeat
-/// until a sweep changes nothing. Every candidate pattern gets its own colour pre-estimate (from the
-/// same recorded paths), so the sweep compares structure, not a grey guess against coloured yarns.
-fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, c: u32, max_sweeps: usize, stop: &AtomicBool) {
-    let mut cur = pattern_loss(ev, cloth, c);
+/// Greedy pattern sweeps at temperature 0: toggle each cell, keep it when `loss` drops; repeat
+/// until a sweep changes nothing. Returns the final loss.
+fn greedy_sweeps(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    max_sweeps: usize,
+    stop: &AtomicBool,
+    loss: impl Fn(&Evaluator, &mut ClothParams) -> f32,
+) -> f32 {
+    let mut cur = loss(ev, cloth);
     for _ in 0..max_sweeps {
         let mut changed = false;
         for i in 0..cloth.pattern.n_e() {
             for j in 0..cloth.pattern.n_a() {
                 if stop.load(Ordering::Relaxed) {
-                    return;
+                    return cur;
                 }
                 let mut cand = cloth.clone();
                 cand.pattern = cloth.pattern.toggled(i, j);
                 if cand.pattern.has_unbound_yarn() && !cloth.pattern.has_unbound_yarn() {
                     continue;
                 }
-                let l = pattern_loss(ev, &mut cand, c);
+                let l = loss(ev, &mut cand);
                 if l < cur {
                     *cloth = cand;
                     cur = l;
@@ -408,6 +420,12 @@ fn greedy_sweeps(ev: &Evaluator, cloth: &mut ClothParams, c: u32, max_sweeps: us
             break;
         }
     }
+    cur
+}
+
+/// Loss of a cloth as it stands (trace, shade with its appearance).
+fn state_loss(ev: &Evaluator, cloth: &mut ClothParams) -> f32 {
+    ev.mse_of(&ev.record(cloth).shade(&cloth.appearance))
 }
 
 /// Optimise a body-colour texture (multipliers, `k` texels per cell, initialised to ones) for
@@ -484,22 +502,63 @@ pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
     out
 }
 
-/// Template matching of the pattern pre-estimation: try every named weave that fits the grid, in
-/// every shift, each with its own colour estimate; keep the best if it beats the current pattern.
-fn match_templates(ev: &Evaluator, cloth: &mut ClothParams, c: u32, stop: &AtomicBool) {
-    let mut cur = pattern_loss(ev, cloth, c);
-    for p in template_candidates(cloth.pattern.n_e(), cloth.pattern.n_a()) {
+/// Candidate ranking of the pattern pre-estimation: the cloth's own pattern, the two labellings
+/// of the cells' colour clusters (weft-coloured cells on top, or the inverse) and every named
+/// weave that fits the grid, in every shift, each scored with its own colour estimate. Returns
+/// the `keep` best patterns, best first.
+fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, stop: &AtomicBool) -> Vec<WeavePattern> {
+    let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+    let mut cands = vec![cloth.pattern.clone()];
+    if let Some(p) = target::colour_clusters(&ev.target, n_e, n_a, c) {
+        cands.extend([p.inverted(), p].into_iter().filter(|p| !p.has_unbound_yarn()));
+    }
+    cands.extend(template_candidates(n_e, n_a));
+    let mut scored: Vec<(f32, WeavePattern)> = Vec::new();
+    for p in cands {
         if stop.load(Ordering::Relaxed) {
-            return;
+            break;
+        }
+        if scored.iter().any(|(_, q)| *q == p) {
+            continue;
         }
         let mut cand = cloth.clone();
         cand.pattern = p;
         let l = pattern_loss(ev, &mut cand, c);
-        if l < cur {
-            cur = l;
-            *cloth = cand;
+        scored.push((l, cand.pattern));
+    }
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    scored.into_iter().take(keep.max(1)).map(|(_, p)| p).collect()
+}
+
+/// The `n_p` in Table 1's range with the lowest pattern loss for `pattern` (own colour estimate).
+fn scan_plies(ev: &Evaluator, cloth: &ClothParams, pattern: &WeavePattern, c: u32, stop: &AtomicBool) -> u32 {
+    let mut best = (f32::INFINITY, cloth.n_p);
+    for n_p in NP_RANGE.0..=NP_RANGE.1 {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        let mut cand = cloth.clone();
+        cand.pattern = pattern.clone();
+        cand.n_p = n_p;
+        let l = pattern_loss(ev, &mut cand, c);
+        if l < best.0 {
+            best = (l, n_p);
         }
     }
+    best.1
+}
+
+/// The cloth seen with weft and warp roles exchanged where it matters for the picture: every cell
+/// flipped, and the two families' body colours and radii swapped. A pattern and this twin give
+/// nearly the same cell colours, so single-cell toggles cannot get from one to the other.
+fn inverted_twin(cloth: &ClothParams) -> ClothParams {
+    let mut c = cloth.clone();
+    c.pattern = cloth.pattern.inverted();
+    let a = &mut c.appearance;
+    std::mem::swap(&mut a.r_b_e, &mut a.r_b_a);
+    std::mem::swap(&mut a.s_b_e, &mut a.s_b_a);
+    std::mem::swap(&mut c.r_e, &mut c.r_a);
+    c
 }
 
 /// The image repeated `k × k` times (a periodic crop shown as a larger piece of fabric).
@@ -599,10 +658,14 @@ fn apply_network(cloth: &mut ClothParams, pred: &crate::net::Prediction) {
     }
 }
 
-/// A discrete proposal: a cell toggle (80 %), `n_p ± 1` (10 %) or `n_f ± 1..5` (10 %).
+/// A discrete proposal: a cell toggle (72 %), the inverted twin (8 %, see [`inverted_twin`]),
+/// `n_p ± 1` (10 %) or `n_f ± 1..5` (10 %).
 fn propose(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> (ClothParams, String) {
     let mut c = cloth.clone();
     let r: f32 = rng.random();
+    if cells && (0.72..0.8).contains(&r) && !cloth.pattern.inverted().has_unbound_yarn() {
+        return (inverted_twin(cloth), "invert".into());
+    }
     if cells && r < 0.8 {
         // A toggle that leaves a yarn floating over the whole repeat is redrawn (not a weave).
         for _ in 0..32 {
@@ -688,7 +751,7 @@ fn output_scene(
 /// Fit cloth parameters to `input` (linear RGB). See the module docs.
 pub fn fit(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     check_input(input)?;
-    if opts.px_per_cell < 2 || opts.pre_px_per_cell < 2 || opts.spp == 0 || opts.pre_spp == 0 {
+    if opts.px_per_cell < 2 || opts.pre_px_per_cell == 1 || opts.spp == 0 || opts.pre_spp == 0 {
         bail!("px_per_cell must be ≥ 2 and spp ≥ 1");
     }
     crate::render::run_in_pool(opts.threads, || fit_inner(input, opts))
@@ -753,13 +816,18 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         body_texture: None,
     };
     if opts.pre_estimate {
-        let cp = opts.pre_px_per_cell;
+        let cp = if opts.pre_px_per_cell == 0 { c } else { opts.pre_px_per_cell };
         let pre_scene = fit_scene(n_e, n_a, cp, opts.pre_spp, opts.seed, &opts.lights);
         let pre_ev = Evaluator::new(pre_scene, resample(&crop, n_a as u32 * cp, n_e as u32 * cp), opts.loss_block);
-        if opts.pattern.is_none() {
-            greedy_sweeps(&pre_ev, &mut cloth, cp, opts.max_sweeps, stop);
-            match_templates(&pre_ev, &mut cloth, cp, stop);
-        }
+        let shortlist = if opts.pattern.is_none() {
+            rank_candidates(&pre_ev, &cloth, cp, opts.shortlist, stop)
+        } else {
+            vec![cloth.pattern.clone()]
+        };
+        // Plies per yarn change every yarn's silhouette and shading, enough to hide the pattern's
+        // signal: pick n_p by the same score on the leading candidate.
+        cloth.n_p = scan_plies(&pre_ev, &cloth, &shortlist[0], cp, stop);
+        ev.retraces.set(ev.retraces.get() + pre_ev.retraces.get());
         if let Some(m) = &opts.model {
             let net = crate::net::PreEstimator::load(m)
                 .with_context(|| format!("loading the pre-estimator {} (given with --model)", m.display()))?;
@@ -769,12 +837,25 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
                 Err(e) => warnings.push(format!("pre-estimator failed on the input ({e}); using defaults")),
             }
         }
-        estimate_colours(&pre_ev, &mut cloth, cp);
-        if opts.pattern.is_none() {
-            greedy_sweeps(&pre_ev, &mut cloth, cp, opts.max_sweeps, stop);
-            estimate_colours(&pre_ev, &mut cloth, cp);
+        // Warm-up: every shortlisted pattern gets its colour estimate and a short gradient descent
+        // at the fit's resolution; the best goes on. Candidates are compared only once their
+        // appearance fits: with the grey default, the loss is too flat in the pattern to rank them.
+        let mut warm: Option<(f32, ClothParams)> = None;
+        for p in shortlist {
+            let mut cand = cloth.clone();
+            cand.pattern = p;
+            estimate_colours(&ev, &mut cand, c);
+            let l = refine::refine(&ev, &mut cand, opts.warmup, opts.lr, opts.radius_every, stop);
+            if warm.as_ref().is_none_or(|w| l < w.0) {
+                warm = Some((l, cand));
+            }
         }
-        ev.retraces.set(ev.retraces.get() + pre_ev.retraces.get());
+        if let Some((_, w)) = warm {
+            cloth = w;
+        }
+        if opts.pattern.is_none() {
+            greedy_sweeps(&ev, &mut cloth, opts.max_sweeps, stop, state_loss);
+        }
     }
     let pre_pattern = cloth.pattern.clone();
     let initial = cloth.clone();
@@ -788,16 +869,10 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         FitMode::Joint => (n_iter, 0),
         FitMode::Separate => (n_iter / 2, n_iter / 2),
     };
-    let mut x = cloth.appearance.to_vec();
-    let mut radii = [cloth.r_e, cloth.r_a];
-    let mut adam = Adam::new(N_APPEARANCE);
-    let mut adam_r = Adam::new(2);
-    let spans: Vec<f32> = APPEARANCE_RANGES.iter().map(|r| r.max - r.min).collect();
-    let rspan = crate::params::RADIUS_RANGE.1 - crate::params::RADIUS_RANGE.0;
-
+    let mut cont = refine::ContinuousStep::new();
     let mut cache = ev.record(&cloth);
     let mut cur_mse = ev.mse_of(&cache.shade(&cloth.appearance));
-    let mut best = (total_loss(cur_mse, &x), cloth.clone());
+    let mut best = (total_loss(cur_mse, &cloth.appearance.to_vec()), cloth.clone());
 
     // Energy scale: median uphill ΔMSE of a few proposals from the start ↦ T0·ln 2.
     let energy_scale = match opts.energy_scale {
@@ -823,8 +898,8 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             }
         }
     };
-    if total_loss(cur_mse, &x) < best.0 {
-        best = (total_loss(cur_mse, &x), cloth.clone());
+    if total_loss(cur_mse, &cloth.appearance.to_vec()) < best.0 {
+        best = (total_loss(cur_mse, &cloth.appearance.to_vec()), cloth.clone());
     }
 
     let pb = if opts.progress {
@@ -856,17 +931,14 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             FitMode::Separate => "appearance",
         };
         let radius_step = do_grad && opts.radius_every > 0 && k % opts.radius_every == 0;
-        cloth.appearance = Appearance::from_slice(&x);
-        cloth.r_e = radii[0];
-        cloth.r_a = radii[1];
-        if stale || radius_step {
+        if stale {
             cache = ev.record(&cloth);
             stale = false;
         }
         // Gradient (and MSE) at the current state.
         let (mut m, mut g) = ev.loss_grad(&cache, &cloth.appearance);
         cur_mse = m;
-        let mut loss = total_loss(m, &x);
+        let mut loss = total_loss(m, &cloth.appearance.to_vec());
         if loss < best.0 {
             best = (loss, cloth.clone());
         }
@@ -889,7 +961,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
                     m = l;
                 }
                 cur_mse = m;
-                loss = total_loss(m, &x);
+                loss = total_loss(m, &cloth.appearance.to_vec());
                 if loss < best.0 {
                     best = (loss, cloth.clone());
                 }
@@ -898,50 +970,13 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         // Continuous step.
         if do_grad {
             let frac = if n_iter > grad_from { (k - grad_from) as f32 / (n_iter - grad_from) as f32 } else { 0.0 };
-            let decay = 0.1f32.powf(frac);
-            let (_, gb) = anneal::appearance_barrier(&x);
-            let gt: Vec<f32> = g.iter().zip(gb.iter()).map(|(a, b)| a + b).collect();
-            let lr: Vec<f32> = spans.iter().map(|s| opts.lr * s * decay).collect();
-            adam.step(&mut x, &gt, &lr, &[true; N_APPEARANCE]);
-            for (v, r) in x.iter_mut().zip(APPEARANCE_RANGES) {
-                let span = r.max - r.min;
-                let lo = if r.min == 0.0 { 0.0 } else { r.min - 0.05 * span };
-                *v = v.clamp(lo, r.max + 0.05 * span);
-            }
-            if radius_step {
-                let h = 0.1f32;
-                let mut gr = [0.0f32; 2];
-                for (q, grq) in gr.iter_mut().enumerate() {
-                    let mut lp = [0.0f32; 2];
-                    for (s, lps) in [h, -h].iter().zip(lp.iter_mut()) {
-                        let mut cc = cloth.clone();
-                        let r = if q == 0 { &mut cc.r_e } else { &mut cc.r_a };
-                        *r = (*r + s).clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1);
-                        *lps = ev.mse_of(&ev.record(&cc).shade(&cc.appearance));
-                    }
-                    let r0 = radii[q];
-                    let hh = (r0 + h).min(crate::params::RADIUS_RANGE.1) - (r0 - h).max(crate::params::RADIUS_RANGE.0);
-                    *grq = (lp[0] - lp[1]) / hh.max(1e-6)
-                        + anneal::barrier_grad(
-                            r0,
-                            crate::params::RADIUS_RANGE.0,
-                            crate::params::RADIUS_RANGE.1,
-                            BARRIER_LAMBDA,
-                        );
-                }
-                let lr = [opts.lr * rspan * decay; 2];
-                adam_r.step(&mut radii, &gr, &lr, &[true; 2]);
-                radii = radii.map(|r| r.clamp(crate::params::RADIUS_RANGE.0, crate::params::RADIUS_RANGE.1));
-                stale = true;
-            }
+            stale |= cont.step(&ev, &mut cloth, &g, opts.lr * 0.1f32.powf(frac), radius_step);
         }
         // Return to the best state once, three quarters through (the tail refines it).
         if !returned && k + 1 == (3 * n_iter) / 4 && opts.mode == FitMode::Joint {
             returned = true;
             if best.0 < loss {
                 cloth = best.1.clone();
-                x = cloth.appearance.to_vec();
-                radii = [cloth.r_e, cloth.r_a];
                 stale = true;
             }
         }
@@ -978,27 +1013,34 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         stopped = true;
     }
 
-    // Polish: greedy pass over cells (and n_p) with the best appearance.
+    // Finish: the annealed best and the warmed-up pre-estimate each get the same gradient descent
+    // (a state found early was scored with a less converged appearance than one found late), the
+    // lower loss wins; then a greedy pass over the cells and, if it changed the pattern, another
+    // descent.
     let mut best_cloth = best.1.clone();
     if opts.polish && !stopped && n_iter > 0 {
-        let mut cur = ev.mse_of(&ev.render(&best_cloth));
+        let mut finals = vec![best.1.clone()];
+        if initial.pattern != best.1.pattern || initial.n_p != best.1.n_p || initial.n_f != best.1.n_f {
+            finals.push(initial.clone());
+        }
+        if cells && !best.1.pattern.inverted().has_unbound_yarn() {
+            finals.push(inverted_twin(&best.1));
+        }
+        let mut chosen: Option<(f32, ClothParams)> = None;
+        for mut c in finals {
+            let l = refine::refine(&ev, &mut c, opts.finish, opts.lr * 0.3, opts.radius_every, stop);
+            if chosen.as_ref().is_none_or(|w| l < w.0) {
+                chosen = Some((l, c));
+            }
+        }
+        if let Some((_, c)) = chosen {
+            best_cloth = c;
+        }
         if cells {
-            'outer: for i in 0..n_e {
-                for j in 0..n_a {
-                    if stop.load(Ordering::Relaxed) {
-                        break 'outer;
-                    }
-                    let mut c2 = best_cloth.clone();
-                    c2.pattern = best_cloth.pattern.toggled(i, j);
-                    if c2.pattern.has_unbound_yarn() && !best_cloth.pattern.has_unbound_yarn() {
-                        continue;
-                    }
-                    let l = ev.mse_of(&ev.render(&c2));
-                    if l < cur {
-                        cur = l;
-                        best_cloth = c2;
-                    }
-                }
+            let before = best_cloth.pattern.clone();
+            greedy_sweeps(&ev, &mut best_cloth, 1, stop, state_loss);
+            if best_cloth.pattern != before {
+                refine::refine(&ev, &mut best_cloth, opts.finish / 2, opts.lr * 0.3, opts.radius_every, stop);
             }
         }
     }

@@ -142,3 +142,67 @@ pub fn mse(a: &Image, b: &Image) -> f32 {
     let r = a.rmse(b);
     r * r
 }
+
+/// Inner mean colour of every cell (`margin` of the cell size ignored at each edge), row-major by
+/// weft `i`, warp `j`.
+pub fn cell_means(img: &Image, n_e: usize, n_a: usize, c: u32, margin: f32) -> Vec<[f32; 3]> {
+    let m = ((c as f32 * margin).round() as u32).min(c.saturating_sub(1) / 2);
+    let mut out = Vec::with_capacity(n_e * n_a);
+    for i in 0..n_e {
+        for j in 0..n_a {
+            let (x0, y0, x1, y1) = cell_rect(n_e, i, j, c);
+            let mut acc = [0.0f64; 3];
+            let mut n = 0usize;
+            for y in y0 + m..y1 - m {
+                for x in x0 + m..x1 - m {
+                    let v = img.get(x, y);
+                    (0..3).for_each(|k| acc[k] += v[k].clamp(0.0, 1.0) as f64);
+                    n += 1;
+                }
+            }
+            out.push(acc.map(|a| (a / n.max(1) as f64) as f32));
+        }
+    }
+    out
+}
+
+/// Two-means clustering of the cells' inner mean colours, started from the two most different
+/// cells: where the two yarn families differ in colour, the clusters are the cells where weft
+/// resp. warp lies on top (paper §5.1's colour cue). Which cluster is which is not decided here:
+/// the caller tries the labelling and its inverse. `None` when every cell lands in one cluster.
+pub fn colour_clusters(img: &Image, n_e: usize, n_a: usize, c: u32) -> Option<WeavePattern> {
+    let x = cell_means(img, n_e, n_a, c, 0.2);
+    let d2 = |a: &[f32; 3], b: &[f32; 3]| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>();
+    let mut far = (0, 0, -1.0f32);
+    for a in 0..x.len() {
+        for b in a + 1..x.len() {
+            let d = d2(&x[a], &x[b]);
+            if d > far.2 {
+                far = (a, b, d);
+            }
+        }
+    }
+    if far.2 <= 0.0 {
+        return None;
+    }
+    let mut mu = [x[far.0], x[far.1]];
+    let mut lab = vec![false; x.len()];
+    for _ in 0..32 {
+        let new: Vec<bool> = x.iter().map(|p| d2(p, &mu[1]) < d2(p, &mu[0])).collect();
+        let changed = new != lab;
+        lab = new;
+        let n1 = lab.iter().filter(|&&l| l).count();
+        if n1 == 0 || n1 == lab.len() {
+            return None;
+        }
+        for (side, m) in mu.iter_mut().enumerate() {
+            let sel: Vec<&[f32; 3]> = x.iter().zip(&lab).filter(|(_, &l)| l == (side == 1)).map(|(p, _)| p).collect();
+            *m = std::array::from_fn(|k| sel.iter().map(|p| p[k]).sum::<f32>() / sel.len() as f32);
+        }
+        if !changed {
+            break;
+        }
+    }
+    let rows: Vec<Vec<bool>> = (0..n_e).map(|i| lab[i * n_a..(i + 1) * n_a].to_vec()).collect();
+    WeavePattern::from_rows_unreduced(&rows).ok()
+}

@@ -113,6 +113,18 @@ impl Light {
         }
     }
 
+    /// Solid-angle density of the NEE sample for the lights that escaping rays can also hit (MIS):
+    /// `1/Ω` for a distant light with a finite cone, `|cos θ|/2π` for the ambient dome (sampled ∝
+    /// |cos| about the shading normal on both sides; `cos_local` is the direction's local z).
+    /// `None` for delta lights.
+    pub fn mis_pdf(&self, cos_local: f32) -> Option<f32> {
+        match self {
+            Light::Distant { cos_cone, .. } if *cos_cone < 1.0 - 1e-7 => Some(1.0 / (2.0 * PI * (1.0 - cos_cone))),
+            Light::Ambient { .. } => Some(cos_local.abs() / (2.0 * PI)),
+            _ => None,
+        }
+    }
+
     /// True if the light can illuminate the back (z < 0 side) of the cloth.
     pub fn lights_back(&self) -> bool {
         match self {

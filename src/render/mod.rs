@@ -104,6 +104,7 @@ impl Prepared {
             camera: &self.camera,
             sampling,
             transmission: self.transmission,
+            white: 1.0 / self.exposure,
         }
     }
 
