@@ -37,7 +37,7 @@ pub struct FitArgs {
     #[arg(long)]
     pub grid: Option<String>,
     /// Optimization iterations.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 160)]
     pub iterations: usize,
     /// Pixels per pattern cell of the fit renders.
     #[arg(long, default_value_t = 16)]
@@ -85,7 +85,7 @@ impl FitArgs {
             no_prep: false,
             pattern: None,
             grid: None,
-            iterations: 300,
+            iterations: 160,
             px_per_cell: 16,
             spp: 4,
             seed: 1,
@@ -337,7 +337,7 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value = "none")]
     pub ablation: Ablation,
     /// Optimization iterations per fit.
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 160)]
     pub iterations: usize,
     /// Pixels per cell (targets and fits).
     #[arg(long, default_value_t = 16)]
@@ -368,7 +368,7 @@ impl Default for EvalArgs {
             count: 8,
             seed: 1,
             ablation: Ablation::None,
-            iterations: 200,
+            iterations: 160,
             px_per_cell: 16,
             target_spp: 256,
             max_side: 5,
@@ -436,6 +436,12 @@ pub struct EvalCase {
     pub curve: Vec<(usize, f64, f32)>,
     /// Whether the grid was detected correctly (or given).
     pub grid_ok: bool,
+    /// PSNR of the fit re-lit against the truth re-lit, under the front-only and back-only rigs
+    /// (lights the fit never saw: what the confounded parameters change).
+    pub relit_db: [f32; 2],
+    /// Per entry of `errors`: whether the target determines it (appearance: Cramér–Rao bound
+    /// ≤ 2.5 % of the range, see [`super::identify`]; radii: always; `n_p`, `n_f`: never counted).
+    pub identifiable: Vec<bool>,
 }
 
 /// Summary of `woven eval`.
@@ -468,18 +474,30 @@ impl EvalReport {
     fn all_errors(&self) -> Vec<f32> {
         self.cases.iter().flat_map(|c| c.errors.iter().copied()).collect()
     }
+    /// Errors of the parameters each target determines.
+    pub fn identifiable_errors(&self) -> Vec<f32> {
+        self.cases
+            .iter()
+            .flat_map(|c| c.errors.iter().zip(&c.identifiable).filter(|(_, &ok)| ok).map(|(e, _)| *e))
+            .collect()
+    }
     /// The last line of `woven eval`.
     pub fn summary_line(&self) -> String {
-        let e = self.all_errors();
+        let e = self.identifiable_errors();
+        let all = self.all_errors();
         let psnr = self.cases.iter().map(|c| c.psnr_db).sum::<f32>() / self.cases.len().max(1) as f32;
         let secs = self.cases.iter().map(|c| c.secs).sum::<f64>() / self.cases.len().max(1) as f64;
         format!(
-            "eval: pattern_exact={:.2} median_err={:.3} p90_err={:.2} psnr_db={:.1} fit_s={:.1}",
+            "eval: pattern_exact={:.2} median_err={:.3} p90_err={:.2} psnr_db={:.1} fit_s={:.1} median_err_all={:.3} identifiable={}/{} relit_db={:.1}",
             self.pattern_exact(),
             quantile(&e, 0.5),
             quantile(&e, 0.9),
             psnr,
-            secs
+            secs,
+            quantile(&all, 0.5),
+            e.len(),
+            all.len(),
+            self.cases.iter().map(|c| (c.relit_db[0] + c.relit_db[1]) / 2.0).sum::<f32>() / self.cases.len().max(1) as f32
         )
     }
     /// Markdown section for docs/benchmarks.md.
@@ -493,16 +511,18 @@ impl EvalReport {
             self.iterations,
             self.threads
         );
-        s += "| # | true pattern | fitted | exact | median err | p90 err | PSNR dB | fit s |\n|---|---|---|---|---|---|---|---|\n";
+        s += "| # | true pattern | fitted | exact | median err | p90 err | PSNR dB | front-lit PSNR | back-lit PSNR | fit s |\n|---|---|---|---|---|---|---|---|---|---|\n";
         for (i, c) in self.cases.iter().enumerate() {
             s += &format!(
-                "| {i} | `{}` | `{}` | {} | {:.3} | {:.3} | {:.1} | {:.1} |\n",
+                "| {i} | `{}` | `{}` | {} | {:.3} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} |\n",
                 c.truth,
                 c.fit,
                 if c.exact { "yes" } else { "no" },
                 quantile(&c.errors, 0.5),
                 quantile(&c.errors, 0.9),
                 c.psnr_db,
+                c.relit_db[0],
+                c.relit_db[1],
                 c.secs
             );
         }
@@ -515,10 +535,25 @@ impl EvalReport {
             s += &format!("| {k} | {secs:.1} | {:.3} |\n", quantile(&med, 0.5));
         }
         s += "\nPer-parameter error, % of the Table-1 range (median / 90th percentile over the targets, the format of \
-               seed 002's Table 2):\n\n| parameter | median % | p90 % |\n|---|---|---|\n";
+               seed 002's Table 2), and over the targets whose picture determines the parameter (Cramér–Rao bound ≤ 2.5 % \
+               of the range, `src/fit/identify.rs`; radii always, n_p and n_f never counted):\n\n\
+               | parameter | median % | p90 % | identifiable in | median % there |\n|---|---|---|---|---|\n";
         for (k, name) in param_names().iter().enumerate() {
             let v: Vec<f32> = self.cases.iter().filter_map(|c| c.errors.get(k).copied()).collect();
-            s += &format!("| `{name}` | {:.1} | {:.1} |\n", 100.0 * quantile(&v, 0.5), 100.0 * quantile(&v, 0.9));
+            let idv: Vec<f32> = self
+                .cases
+                .iter()
+                .filter(|c| c.identifiable.get(k).copied().unwrap_or(false))
+                .filter_map(|c| c.errors.get(k).copied())
+                .collect();
+            let there = if idv.is_empty() { "–".to_string() } else { format!("{:.1}", 100.0 * quantile(&idv, 0.5)) };
+            s += &format!(
+                "| `{name}` | {:.1} | {:.1} | {}/{} | {there} |\n",
+                100.0 * quantile(&v, 0.5),
+                100.0 * quantile(&v, 0.9),
+                idv.len(),
+                self.cases.len()
+            );
         }
         let sub = self.subset_errors();
         s += &format!(
@@ -549,6 +584,47 @@ pub fn param_names() -> Vec<String> {
     let mut v: Vec<String> = APPEARANCE_RANGES.iter().map(|r| r.name.to_string()).collect();
     v.extend(["r_e", "r_a", "n_p", "n_f"].map(String::from));
     v
+}
+
+/// PSNR of `fit` against `truth`, both rendered (32 spp, fit framing) under the front-only and the
+/// back-only rig.
+fn relit_psnr(fit: &ClothParams, truth: &ClothParams, opts: &FitOptions) -> [f32; 2] {
+    let ro = RenderOptions { threads: opts.threads, ..Default::default() };
+    ["front", "back"].map(|name| {
+        let rig = LightRig::named(name).unwrap_or_else(LightRig::default_rig);
+        let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
+        let scene = super::target::fit_scene(n_e, n_a, opts.px_per_cell, 32, 77, &rig);
+        let mut fit = fit.clone();
+        if (fit.pattern.n_e(), fit.pattern.n_a()) != (n_e, n_a) {
+            // A fit on a detected grid other than the truth's: frame one repeat of the truth.
+            return 0.0;
+        }
+        fit.body_texture = None;
+        render(&fit, &scene, &ro).psnr_srgb(&render(truth, &scene, &ro))
+    })
+}
+
+/// Which of the [`param_errors`] entries `truth` determines in the fit's view (see
+/// [`EvalCase::identifiable`]). The noise is that of the fit's renders (two renders at the fit's
+/// spp with different seeds) plus the target's, scaled by the spp ratio.
+fn identifiable_mask(truth: &ClothParams, opts: &FitOptions, target_spp: u32) -> Vec<bool> {
+    let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
+    let scene = super::target::fit_scene(n_e, n_a, opts.px_per_cell, opts.spp, opts.seed, &opts.lights);
+    let ro = RenderOptions { threads: opts.threads, ..Default::default() };
+    let a = render(truth, &scene, &ro);
+    let b = render(
+        truth,
+        &super::target::fit_scene(n_e, n_a, opts.px_per_cell, opts.spp, opts.seed + 1, &opts.lights),
+        &ro,
+    );
+    let (fa, fb) = (super::block_filter(&a, opts.loss_block), super::block_filter(&b, opts.loss_block));
+    let n = (fa.len() * 3).max(1) as f64;
+    let d2: f64 = fa.iter().zip(&fb).map(|(p, q)| (0..3).map(|k| ((p[k] - q[k]) as f64).powi(2)).sum::<f64>()).sum();
+    let sigma2 = (d2 / n / 2.0 * (1.0 + opts.spp as f64 / target_spp.max(1) as f64)).max(1e-12);
+    let sd = super::identify::appearance_sd(truth, &scene, opts.loss_block, sigma2, opts.threads);
+    let mut mask: Vec<bool> = sd.iter().map(|s| *s <= super::identify::IDENTIFIABLE_SD).collect();
+    mask.extend([true, true, false, false]);
+    mask
 }
 
 /// Run the evaluation and return the report (see [`run_eval`]).
@@ -590,6 +666,8 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
                     secs: t.elapsed().as_secs_f64(),
                     curve: Vec::new(),
                     grid_ok,
+                    relit_db: [0.0; 2],
+                    identifiable: identifiable_mask(&truth, &opts, args.target_spp),
                 });
                 continue;
             }
@@ -633,6 +711,8 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
             secs,
             curve,
             grid_ok,
+            relit_db: relit_psnr(&res.cloth, &truth, &opts),
+            identifiable: identifiable_mask(&truth, &opts, args.target_spp),
         });
     }
     Ok(EvalReport {

@@ -14,6 +14,7 @@
 
 pub mod anneal;
 pub mod cli;
+pub mod identify;
 pub mod output;
 mod refine;
 pub mod target;
@@ -84,6 +85,10 @@ pub struct FitOptions {
     pub shortlist: usize,
     /// Gradient steps of each warm-up (pre-estimation, fixed pattern).
     pub warmup: usize,
+    /// Most joint runs (each from a warmed-up candidate; the iterations are shared out).
+    pub starts: usize,
+    /// A runner-up gets its own run when its warm-up loss is within this fraction of the leader's.
+    pub start_margin: f32,
     /// Gradient steps that finish the best state (and the pre-estimate it competes with).
     pub finish: usize,
     /// Adam step size as a fraction of each parameter's range.
@@ -125,19 +130,21 @@ impl Default for FitOptions {
             prep: true,
             pattern: None,
             grid: None,
-            iterations: 300,
+            iterations: 160,
             px_per_cell: 16,
             spp: 4,
             pre_px_per_cell: 0,
             pre_spp: 2,
             final_spp: 64,
             max_sweeps: 2,
-            shortlist: 3,
+            shortlist: 2,
             warmup: 20,
-            finish: 30,
+            starts: 2,
+            start_margin: 0.15,
+            finish: 15,
             loss_block: 2,
             lr: 0.03,
-            radius_every: 4,
+            radius_every: 5,
             t0: anneal::T0,
             decay: anneal::DECAY,
             energy_scale: None,
@@ -507,12 +514,8 @@ pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
 /// weave that fits the grid, in every shift, each scored with its own colour estimate. Returns
 /// the `keep` best patterns, best first.
 fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, stop: &AtomicBool) -> Vec<WeavePattern> {
-    let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
     let mut cands = vec![cloth.pattern.clone()];
-    if let Some(p) = target::colour_clusters(&ev.target, n_e, n_a, c) {
-        cands.extend([p.inverted(), p].into_iter().filter(|p| !p.has_unbound_yarn()));
-    }
-    cands.extend(template_candidates(n_e, n_a));
+    cands.extend(candidate_patterns(ev, cloth.pattern.n_e(), cloth.pattern.n_a(), c));
     let mut scored: Vec<(f32, WeavePattern)> = Vec::new();
     for p in cands {
         if stop.load(Ordering::Relaxed) {
@@ -527,7 +530,45 @@ fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, sto
         scored.push((l, cand.pattern));
     }
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
-    scored.into_iter().take(keep.max(1)).map(|(_, p)| p).collect()
+    // The best named weave always goes on to the warm-up: where the two colours are close, a
+    // noisy colour clustering can out-score the true weave on the coarse layout.
+    let templates = template_candidates(cloth.pattern.n_e(), cloth.pattern.n_a());
+    let best_template = scored.iter().find(|(_, p)| templates.contains(p)).map(|(_, p)| p.clone());
+    let mut out: Vec<WeavePattern> = scored.into_iter().take(keep.max(1)).map(|(_, p)| p).collect();
+    if let Some(t) = best_template.filter(|t| !out.contains(t)) {
+        out.push(t);
+    }
+    out
+}
+
+/// Whole-pattern candidates for an `n_e × n_a` grid: both labellings of the target's colour
+/// clusters, then every named weave that fits (see [`template_candidates`]).
+fn candidate_patterns(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
+    let mut cands = Vec::new();
+    if let Some(p) = target::colour_clusters(&ev.target, n_e, n_a, c) {
+        cands.extend([p.inverted(), p].into_iter().filter(|p| !p.has_unbound_yarn()));
+    }
+    cands.extend(template_candidates(n_e, n_a));
+    cands
+}
+
+/// A common yarn radius from a 0.5-unit grid over Table 1's range, by the pattern loss (own colour
+/// estimate): the radii set the gaps, which the back light makes the brightest, most costly part
+/// of the picture, and the gradient steps move them too slowly from a default.
+fn scan_radii(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> (f32, f32) {
+    let (lo, hi) = crate::params::RADIUS_RANGE;
+    let mut best = (f32::INFINITY, (cloth.r_e, cloth.r_a));
+    let mut r = lo.max(1.5);
+    while r <= hi + 1e-6 && !stop.load(Ordering::Relaxed) {
+        let mut cand = cloth.clone();
+        (cand.r_e, cand.r_a) = (r, r);
+        let l = pattern_loss(ev, &mut cand, c);
+        if l < best.0 {
+            best = (l, (r, r));
+        }
+        r += 0.5;
+    }
+    best.1
 }
 
 /// The `n_p` in Table 1's range with the lowest pattern loss for `pattern` (own colour estimate).
@@ -619,9 +660,10 @@ fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) {
         a.r_s = [v; 3];
         a
     };
-    let m = target::top_mean(&ev.target, 0.1);
+    let idx = target::top_pixels(&ev.target, 0.1);
+    let m = target::mean_at(&ev.target, &idx);
     let (s0, s1) =
-        (target::top_mean(&cache.shade(&with_spec(lo)), 0.1), target::top_mean(&cache.shade(&with_spec(hi)), 0.1));
+        (target::mean_at(&cache.shade(&with_spec(lo)), &idx), target::mean_at(&cache.shade(&with_spec(hi)), &idx));
     for k in 0..3 {
         let slope = (s1[k] - s0[k]) / (hi - lo);
         let v = if slope.abs() > 1e-6 { lo + (m[k] - s0[k]) / slope } else { 0.5 };
@@ -659,7 +701,7 @@ fn apply_network(cloth: &mut ClothParams, pred: &crate::net::Prediction) {
 }
 
 /// A discrete proposal: a cell toggle (72 %), the inverted twin (8 %, see [`inverted_twin`]),
-/// `n_p ± 1` (10 %) or `n_f ± 1..5` (10 %).
+/// another `n_p` (10 %) or `n_f ± 1..5` (10 %).
 fn propose(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> (ClothParams, String) {
     let mut c = cloth.clone();
     let r: f32 = rng.random();
@@ -679,14 +721,10 @@ fn propose(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> (ClothParams, 
         c.pattern = cloth.pattern.clone();
     }
     if (cells && r < 0.9) || (!cells && r < 0.5) {
-        let up = if cloth.n_p <= NP_RANGE.0 {
-            true
-        } else if cloth.n_p >= NP_RANGE.1 {
-            false
-        } else {
-            rng.random()
-        };
-        c.n_p = if up { cloth.n_p + 1 } else { cloth.n_p - 1 };
+        // Any other ply count, not a neighbour: the loss is not monotone in n_p (the appearance
+        // adapts to it), so ±1 steps leave a wrong count as a deep local minimum.
+        let others: Vec<u32> = (NP_RANGE.0..=NP_RANGE.1).filter(|&v| v != cloth.n_p).collect();
+        c.n_p = others[rng.random_range(0..others.len())];
         let d = format!("n_p {}->{}", cloth.n_p, c.n_p);
         (c, d)
     } else {
@@ -815,19 +853,21 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         appearance: grey_appearance(),
         body_texture: None,
     };
+    let mut starts = vec![cloth.clone()];
     if opts.pre_estimate {
         let cp = if opts.pre_px_per_cell == 0 { c } else { opts.pre_px_per_cell };
         let pre_scene = fit_scene(n_e, n_a, cp, opts.pre_spp, opts.seed, &opts.lights);
         let pre_ev = Evaluator::new(pre_scene, resample(&crop, n_a as u32 * cp, n_e as u32 * cp), opts.loss_block);
         let shortlist = if opts.pattern.is_none() {
-            rank_candidates(&pre_ev, &cloth, cp, opts.shortlist, stop)
+            // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
+            // depends on n_p, n_f and the appearance, which are still at their defaults here.
+            let coarse = Evaluator::new(pre_ev.scene.clone(), pre_ev.target.clone(), (cp / 2).max(1));
+            let list = rank_candidates(&coarse, &cloth, cp, opts.shortlist, stop);
+            ev.retraces.set(ev.retraces.get() + coarse.retraces.get());
+            list
         } else {
             vec![cloth.pattern.clone()]
         };
-        // Plies per yarn change every yarn's silhouette and shading, enough to hide the pattern's
-        // signal: pick n_p by the same score on the leading candidate.
-        cloth.n_p = scan_plies(&pre_ev, &cloth, &shortlist[0], cp, stop);
-        ev.retraces.set(ev.retraces.get() + pre_ev.retraces.get());
         if let Some(m) = &opts.model {
             let net = crate::net::PreEstimator::load(m)
                 .with_context(|| format!("loading the pre-estimator {} (given with --model)", m.display()))?;
@@ -840,31 +880,160 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         // Warm-up: every shortlisted pattern gets its colour estimate and a short gradient descent
         // at the fit's resolution; the best goes on. Candidates are compared only once their
         // appearance fits: with the grey default, the loss is too flat in the pattern to rank them.
-        let mut warm: Option<(f32, ClothParams)> = None;
+        let mut warm: Vec<(f32, ClothParams)> = Vec::new();
         for p in shortlist {
             let mut cand = cloth.clone();
+            // Plies per yarn change every yarn's silhouette and shading, enough to hide the
+            // pattern's signal: each candidate gets its own n_p.
+            cand.pattern = p.clone();
+            (cand.r_e, cand.r_a) = scan_radii(&pre_ev, &cand, cp, stop);
+            cand.n_p = scan_plies(&pre_ev, &cand, &p, cp, stop);
             cand.pattern = p;
             estimate_colours(&ev, &mut cand, c);
             let l = refine::refine(&ev, &mut cand, opts.warmup, opts.lr, opts.radius_every, stop);
-            if warm.as_ref().is_none_or(|w| l < w.0) {
-                warm = Some((l, cand));
+            warm.push((l, cand));
+        }
+        ev.retraces.set(ev.retraces.get() + pre_ev.retraces.get());
+        warm.sort_by(|a, b| a.0.total_cmp(&b.0));
+        // A runner-up within `start_margin` of the leader is too close to call at this stage (a
+        // pattern and its inverse with swapped colours often are): it gets a joint run of its own.
+        let lead = warm.first().map(|w| w.0).unwrap_or(0.0);
+        starts = warm
+            .into_iter()
+            .enumerate()
+            .filter(|(k, w)| *k == 0 || (*k < opts.starts && w.0 <= lead * (1.0 + opts.start_margin)))
+            .map(|(_, w)| w.1)
+            .collect();
+        if opts.pattern.is_none() {
+            for s in starts.iter_mut() {
+                greedy_sweeps(&ev, s, opts.max_sweeps, stop, state_loss);
             }
         }
-        if let Some((_, w)) = warm {
-            cloth = w;
-        }
-        if opts.pattern.is_none() {
-            greedy_sweeps(&ev, &mut cloth, opts.max_sweeps, stop, state_loss);
+        if let Some(s) = starts.first() {
+            cloth = s.clone();
         }
     }
     let pre_pattern = cloth.pattern.clone();
     let initial = cloth.clone();
     let t_pre = t_start.elapsed().as_secs_f64() - t_prep;
 
-    // 3. Joint optimization.
-    let mut rng = StdRng::seed_from_u64(opts.seed ^ 0x05EE_DF17);
+    // 3. Joint optimization, from each start (see `opts.starts`), then its finish; the lowest
+    // loss wins.
+    let per = if starts.len() > 1 { opts.iterations / starts.len() } else { opts.iterations };
+    let pb = if opts.progress {
+        let pb = indicatif::ProgressBar::new((per * starts.len()) as u64);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        pb
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut history: Vec<IterLog> = Vec::new();
+    let mut checkpoints = Vec::new();
+    let mut energy_scale = None;
+    let mut stopped = false;
+    let mut chosen: Option<(f32, ClothParams, (f32, ClothParams))> = None;
+    for (si, start) in starts.iter().enumerate() {
+        if stop.load(Ordering::Relaxed) {
+            stopped = true;
+            break;
+        }
+        let run = joint_loop(&ev, start.clone(), opts, per, si * per, t_start, &pb);
+        energy_scale.get_or_insert(run.energy_scale);
+        history.extend(run.history);
+        checkpoints.extend(run.checkpoints);
+        stopped |= run.stopped;
+        let done = if opts.polish && !stopped && per > 0 {
+            finish(&ev, &run.best.1, start, &tgt, c, opts)
+        } else {
+            run.best.clone()
+        };
+        if chosen.as_ref().is_none_or(|w| done.0 < w.0) {
+            chosen = Some((done.0, done.1, run.best));
+        }
+    }
+    pb.finish_and_clear();
+    stopped |= stop.load(Ordering::Relaxed);
+    let energy_scale = energy_scale.unwrap_or(0.0);
+    let (mut best_cloth, best) = match chosen {
+        Some((_, c, b)) => (c, b),
+        None => (initial.clone(), (f32::INFINITY, initial.clone())),
+    };
+    checkpoints.push(Checkpoint {
+        iter: history.len(),
+        secs: t_start.elapsed().as_secs_f64(),
+        cloth: best_cloth.clone(),
+    });
+    if opts.svcolor > 0 && !stopped {
+        best_cloth.body_texture = Some(fit_texture(&ev, &best_cloth, opts.svcolor, 60));
+    }
+    let t_opt = t_start.elapsed().as_secs_f64() - t_prep - t_pre;
+
+    // Final render of the best state.
+    let best_cloth = clamp_ranges(&best_cloth);
+    let mut final_scene = scene.clone();
+    final_scene.spp = opts.final_spp.max(1);
+    final_scene.seed = opts.seed.wrapping_add(7);
+    let render = Prepared::new(&best_cloth, &final_scene, &RenderOptions::default()).render(&best_cloth.appearance);
+    let psnr_db = render.psnr_srgb(&tgt);
+    // A body texture is laid over the fit grid, so the pattern keeps that grid.
+    let reduced =
+        if best_cloth.body_texture.is_some() { best_cloth.pattern.clone() } else { best_cloth.pattern.reduced() };
+    let mut out_cloth = best_cloth.clone();
+    out_cloth.pattern = reduced.clone();
+    let out_scene =
+        output_scene(&scene, (n_e, n_a), (reduced.n_e(), reduced.n_a()), (input.width, input.height), prep.as_ref());
+    let params = ParamFile { cloth: out_cloth, scene: out_scene };
+    params.validate().context("fitted parameter file does not validate")?;
+    let total = t_start.elapsed().as_secs_f64();
+    Ok(FitResult {
+        params,
+        cloth: best_cloth,
+        fit_scene: scene,
+        target: tgt,
+        render,
+        psnr_db,
+        best_loss: best.0,
+        pre_pattern,
+        initial,
+        history,
+        checkpoints,
+        energy_scale,
+        stopped,
+        prep,
+        warnings,
+        timings: [t_prep, t_pre, t_opt, total],
+        retraces: ev.retraces.get(),
+    })
+}
+
+/// What one run of the joint loop leaves.
+struct JointRun {
+    best: (f32, ClothParams),
+    history: Vec<IterLog>,
+    checkpoints: Vec<Checkpoint>,
+    energy_scale: f64,
+    stopped: bool,
+}
+
+/// The joint loop (pipeline.md §5): per iteration one Metropolis-tested discrete proposal (cells,
+/// `n_p`, `n_f`, the inverted twin) and one Adam step of the continuous parameters, for `n_iter`
+/// iterations from `start`; `iter0` numbers the log lines.
+fn joint_loop(
+    ev: &Evaluator,
+    start: ClothParams,
+    opts: &FitOptions,
+    n_iter: usize,
+    iter0: usize,
+    t_start: Instant,
+    pb: &indicatif::ProgressBar,
+) -> JointRun {
+    let mut rng = StdRng::seed_from_u64(opts.seed ^ 0x05EE_DF17 ^ (iter0 as u64).wrapping_mul(0x9E37_79B9));
+    let stop = &*opts.stop;
+    let mut cloth = start;
     let cells = opts.pattern.is_none();
-    let n_iter = opts.iterations;
     let (anneal_iters, grad_from) = match opts.mode {
         FitMode::Joint => (n_iter, 0),
         FitMode::Separate => (n_iter / 2, n_iter / 2),
@@ -902,19 +1071,10 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         best = (total_loss(cur_mse, &cloth.appearance.to_vec()), cloth.clone());
     }
 
-    let pb = if opts.progress {
-        let pb = indicatif::ProgressBar::new(n_iter as u64);
-        pb.set_style(
-            indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        pb
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
     let mut history = Vec::with_capacity(n_iter);
     let ck_at: Vec<usize> = [0, n_iter / 8, n_iter / 4, n_iter / 2, 3 * n_iter / 4].to_vec();
-    let mut checkpoints = vec![Checkpoint { iter: 0, secs: t_start.elapsed().as_secs_f64(), cloth: best.1.clone() }];
+    let mut checkpoints =
+        vec![Checkpoint { iter: iter0, secs: t_start.elapsed().as_secs_f64(), cloth: best.1.clone() }];
     let mut stale = false;
     let mut stopped = false;
     let mut returned = false;
@@ -970,7 +1130,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         // Continuous step.
         if do_grad {
             let frac = if n_iter > grad_from { (k - grad_from) as f32 / (n_iter - grad_from) as f32 } else { 0.0 };
-            stale |= cont.step(&ev, &mut cloth, &g, opts.lr * 0.1f32.powf(frac), radius_step);
+            stale |= cont.step(ev, &mut cloth, &g, opts.lr * 0.1f32.powf(frac), radius_step);
         }
         // Return to the best state once, three quarters through (the tail refines it).
         if !returned && k + 1 == (3 * n_iter) / 4 && opts.mode == FitMode::Joint {
@@ -981,7 +1141,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             }
         }
         let log = IterLog {
-            iter: k,
+            iter: iter0 + k,
             stage,
             temperature: t,
             mse: cur_mse,
@@ -1001,95 +1161,118 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         if let Some(cb) = &opts.on_iter {
             cb(&log);
         }
-        pb.set_position(k as u64 + 1);
+        pb.set_position((iter0 + k) as u64 + 1);
         pb.set_message(format!("loss {:.3e} best {:.3e} T {:.2}", loss, best.0, t));
         history.push(log);
         if ck_at.contains(&(k + 1)) {
-            checkpoints.push(Checkpoint { iter: k + 1, secs: t_start.elapsed().as_secs_f64(), cloth: best.1.clone() });
+            checkpoints.push(Checkpoint {
+                iter: iter0 + k + 1,
+                secs: t_start.elapsed().as_secs_f64(),
+                cloth: best.1.clone(),
+            });
         }
     }
-    pb.finish_and_clear();
     if !stopped && stop.load(Ordering::Relaxed) {
         stopped = true;
     }
+    JointRun { best, history, checkpoints, energy_scale, stopped }
+}
 
-    // Finish: the annealed best and the warmed-up pre-estimate each get the same gradient descent
-    // (a state found early was scored with a less converged appearance than one found late), the
-    // lower loss wins; then a greedy pass over the cells and, if it changed the pattern, another
-    // descent.
-    let mut best_cloth = best.1.clone();
-    if opts.polish && !stopped && n_iter > 0 {
-        let mut finals = vec![best.1.clone()];
-        if initial.pattern != best.1.pattern || initial.n_p != best.1.n_p || initial.n_f != best.1.n_f {
-            finals.push(initial.clone());
-        }
-        if cells && !best.1.pattern.inverted().has_unbound_yarn() {
-            finals.push(inverted_twin(&best.1));
-        }
-        let mut chosen: Option<(f32, ClothParams)> = None;
-        for mut c in finals {
-            let l = refine::refine(&ev, &mut c, opts.finish, opts.lr * 0.3, opts.radius_every, stop);
-            if chosen.as_ref().is_none_or(|w| l < w.0) {
-                chosen = Some((l, c));
+/// Finish of a joint run (the annealed `best`, started from `initial`): rivals that the
+/// annealer's small steps could not reach get the same short gradient descent as the best, with its
+/// converged appearance (a state found early was scored with a less converged appearance than one
+/// found late), the lowest loss wins; then a greedy pass over the cells and, if it changed the
+/// pattern, another descent. Returns the loss and the cloth.
+fn finish(
+    ev: &Evaluator,
+    best: &ClothParams,
+    initial: &ClothParams,
+    tgt: &Image,
+    c: u32,
+    opts: &FitOptions,
+) -> (f32, ClothParams) {
+    let stop = &*opts.stop;
+    let cells = opts.pattern.is_none();
+    let (n_e, n_a) = (best.pattern.n_e(), best.pattern.n_a());
+    // Rivals of the annealed best, all with its converged appearance: the pre-estimate's
+    // discrete state, the best whole-pattern candidate re-ranked with that appearance (a
+    // cheaper 2-spp trace), and the inverted twin.
+    let mut finals = vec![best.clone()];
+    let mut rival = best.clone();
+    (rival.pattern, rival.n_p, rival.n_f) = (initial.pattern.clone(), initial.n_p, initial.n_f);
+    if cells {
+        let quick = Evaluator::new(fit_scene(n_e, n_a, c, 2, opts.seed, &opts.lights), tgt.clone(), opts.loss_block);
+        let mut top: Option<(f32, WeavePattern)> = None;
+        for p in candidate_patterns(&quick, n_e, n_a, c).into_iter().chain([best.pattern.clone()]) {
+            let mut cand = best.clone();
+            cand.pattern = p;
+            let l = state_loss(&quick, &mut cand);
+            if top.as_ref().is_none_or(|t| l < t.0) {
+                top = Some((l, cand.pattern));
             }
         }
-        if let Some((_, c)) = chosen {
-            best_cloth = c;
+        ev.retraces.set(ev.retraces.get() + quick.retraces.get());
+        if let Some((_, p)) = top.filter(|(_, p)| *p != best.pattern && *p != initial.pattern) {
+            let mut c2 = best.clone();
+            c2.pattern = p;
+            finals.push(c2);
         }
-        if cells {
-            let before = best_cloth.pattern.clone();
-            greedy_sweeps(&ev, &mut best_cloth, 1, stop, state_loss);
-            if best_cloth.pattern != before {
-                refine::refine(&ev, &mut best_cloth, opts.finish / 2, opts.lr * 0.3, opts.radius_every, stop);
+    }
+    if rival.pattern != best.pattern || rival.n_p != best.n_p || rival.n_f != best.n_f {
+        finals.push(rival);
+    }
+    // n_p and n_f scanned over Table 1 with the converged appearance (the annealer moves them
+    // by small steps, and a wrong ply count is a deep local minimum).
+    let quick = Evaluator::new(fit_scene(n_e, n_a, c, 2, opts.seed, &opts.lights), tgt.clone(), opts.loss_block);
+    let mut scan = best.clone();
+    for which in 0..2 {
+        let values: Vec<u32> = if which == 0 {
+            (NP_RANGE.0..=NP_RANGE.1).collect()
+        } else {
+            (NF_RANGE.0..=NF_RANGE.1).step_by(5).collect()
+        };
+        let mut top = (f32::INFINITY, 0);
+        for v in values {
+            let mut cand = scan.clone();
+            if which == 0 {
+                cand.n_p = v
+            } else {
+                cand.n_f = v
+            }
+            let l = state_loss(&quick, &mut cand);
+            if l < top.0 {
+                top = (l, v);
             }
         }
+        if which == 0 {
+            scan.n_p = top.1
+        } else {
+            scan.n_f = top.1
+        }
     }
-    checkpoints.push(Checkpoint {
-        iter: history.len(),
-        secs: t_start.elapsed().as_secs_f64(),
-        cloth: best_cloth.clone(),
-    });
-    if opts.svcolor > 0 && !stopped {
-        best_cloth.body_texture = Some(fit_texture(&ev, &best_cloth, opts.svcolor, 60));
+    ev.retraces.set(ev.retraces.get() + quick.retraces.get());
+    if scan.n_p != best.n_p || scan.n_f != best.n_f {
+        finals.push(scan);
     }
-    let t_opt = t_start.elapsed().as_secs_f64() - t_prep - t_pre;
-
-    // Final render of the best state.
-    let best_cloth = clamp_ranges(&best_cloth);
-    let mut final_scene = scene.clone();
-    final_scene.spp = opts.final_spp.max(1);
-    final_scene.seed = opts.seed.wrapping_add(7);
-    let render = Prepared::new(&best_cloth, &final_scene, &RenderOptions::default()).render(&best_cloth.appearance);
-    let psnr_db = render.psnr_srgb(&tgt);
-    // A body texture is laid over the fit grid, so the pattern keeps that grid.
-    let reduced =
-        if best_cloth.body_texture.is_some() { best_cloth.pattern.clone() } else { best_cloth.pattern.reduced() };
-    let mut out_cloth = best_cloth.clone();
-    out_cloth.pattern = reduced.clone();
-    let out_scene =
-        output_scene(&scene, (n_e, n_a), (reduced.n_e(), reduced.n_a()), (input.width, input.height), prep.as_ref());
-    let params = ParamFile { cloth: out_cloth, scene: out_scene };
-    params.validate().context("fitted parameter file does not validate")?;
-    let total = t_start.elapsed().as_secs_f64();
-    Ok(FitResult {
-        params,
-        cloth: best_cloth,
-        fit_scene: scene,
-        target: tgt,
-        render,
-        psnr_db,
-        best_loss: best.0,
-        pre_pattern,
-        initial,
-        history,
-        checkpoints,
-        energy_scale,
-        stopped,
-        prep,
-        warnings,
-        timings: [t_prep, t_pre, t_opt, total],
-        retraces: ev.retraces.get(),
-    })
+    if cells && !best.pattern.inverted().has_unbound_yarn() {
+        finals.push(inverted_twin(&best));
+    }
+    let mut chosen: Option<(f32, ClothParams)> = None;
+    for mut c in finals {
+        let l = refine::refine(ev, &mut c, opts.finish, opts.lr * 0.3, opts.radius_every, stop);
+        if chosen.as_ref().is_none_or(|w| l < w.0) {
+            chosen = Some((l, c));
+        }
+    }
+    let (mut loss, mut best_cloth) = chosen.unwrap_or_else(|| (f32::INFINITY, best.clone()));
+    if cells {
+        let before = best_cloth.pattern.clone();
+        greedy_sweeps(ev, &mut best_cloth, 1, stop, state_loss);
+        if best_cloth.pattern != before {
+            loss = refine::refine(ev, &mut best_cloth, opts.finish / 2, opts.lr * 0.3, opts.radius_every, stop);
+        }
+    }
+    (loss, best_cloth)
 }
 
 impl std::fmt::Debug for FitResult {

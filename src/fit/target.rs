@@ -123,16 +123,23 @@ pub fn yarn_mean(img: &Image, p: &WeavePattern, c: u32, weft_on_top: bool, margi
     (n > 0).then(|| acc.map(|a| (a / n as f64) as f32))
 }
 
-/// Mean colour of the brightest `frac` of the pixels (by luminance), values clamped to [0, 1].
-pub fn top_mean(img: &Image, frac: f32) -> [f32; 3] {
+/// Indices of the brightest `frac` of the pixels (by luminance) among those below 0.95: the
+/// specular highlights of the yarns, not the gaps (which see the back light and clip to white).
+pub fn top_pixels(img: &Image, frac: f32) -> Vec<usize> {
     let lum = |p: &[f32; 3]| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2];
-    let clamped: Vec<[f32; 3]> = img.data.iter().map(|p| p.map(|v| v.clamp(0.0, 1.0))).collect();
-    let mut px: Vec<&[f32; 3]> = clamped.iter().collect();
-    px.sort_by(|a, b| lum(b).total_cmp(&lum(a)));
-    let n = ((px.len() as f32 * frac).ceil() as usize).clamp(1, px.len());
+    let mut px: Vec<(usize, f32)> =
+        img.data.iter().enumerate().map(|(i, p)| (i, lum(p))).filter(|(_, l)| *l < 0.95).collect();
+    px.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let n = ((px.len() as f32 * frac).ceil() as usize).min(px.len());
+    px[..n].iter().map(|(i, _)| *i).collect()
+}
+
+/// Mean colour of the pixels `idx`, values clamped to [0, 1] (zero if `idx` is empty).
+pub fn mean_at(img: &Image, idx: &[usize]) -> [f32; 3] {
     let mut acc = [0.0f32; 3];
-    for p in &px[..n] {
-        (0..3).for_each(|k| acc[k] += p[k] / n as f32);
+    for &i in idx {
+        let p = img.data[i];
+        (0..3).for_each(|k| acc[k] += p[k].clamp(0.0, 1.0) / idx.len() as f32);
     }
     acc
 }
