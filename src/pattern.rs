@@ -335,4 +335,16 @@ mod tests {
         let shifted = WeavePattern::parse("0110/0011/1001/1100").unwrap();
         assert!(shifted.equivalent(&WeavePattern::preset("twill22").unwrap()));
     }
+
+    #[test]
+    fn inverting_twice_is_the_identity_and_swaps_every_cell() {
+        let p = WeavePattern::parse("1110/0100/1011/0001").expect("pattern");
+        let q = p.inverted();
+        for i in 0..4 {
+            for j in 0..4 {
+                assert_ne!(p.get(i, j), q.get(i, j));
+            }
+        }
+        assert_eq!(q.inverted(), p);
+    }
 }

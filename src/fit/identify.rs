@@ -18,9 +18,9 @@ use crate::scene::Scene;
 /// 5 % error is then within two standard deviations.
 pub const IDENTIFIABLE_SD: f32 = 0.025;
 
-/// Cramér–Rao standard deviations of the appearance scalars (fractions of their ranges, capped at
-/// 1) for `cloth` seen in `scene`, with the loss's `b × b` box filter and per-value noise variance
-/// `sigma2` (of the filtered values).
+/// Cramér–Rao standard deviations of the appearance scalars (fractions of their ranges, at most
+/// one) for `cloth` seen in `scene`, with the loss's box filter of `b` pixels a side and per-value
+/// noise variance `sigma2` (of the filtered values).
 pub fn appearance_sd(
     cloth: &ClothParams,
     scene: &Scene,
@@ -42,16 +42,17 @@ pub fn appearance_sd(
     let mut fisher = vec![0.0f64; N_APPEARANCE * N_APPEARANCE];
     for by in 0..bh {
         for bx in 0..bw {
-            for ch in 0..3 {
-                let mut row = [0.0f64; N_APPEARANCE];
-                for y in by * b..(by + 1) * b {
-                    for x in bx * b..(bx + 1) * b {
-                        let p = &px[(y * w + x) as usize][ch];
+            let mut rows = [[0.0f64; N_APPEARANCE]; 3];
+            for y in by * b..(by + 1) * b {
+                for x in bx * b..(bx + 1) * b {
+                    for (row, p) in rows.iter_mut().zip(px[(y * w + x) as usize].iter()) {
                         if p.v > 0.0 && p.v < 1.0 {
                             row.iter_mut().zip(p.d.iter()).for_each(|(r, d)| *r += *d as f64 * inv);
                         }
                     }
                 }
+            }
+            for row in &rows {
                 for i in 0..N_APPEARANCE {
                     let ri = row[i] * spans[i];
                     if ri == 0.0 {

@@ -830,6 +830,12 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         None => target::detect_grid(&crop)
             .context("cannot detect the yarn grid of the input; pass --grid NExNA or --pattern, or run with prep")?,
     };
+    if grid.is_none() && (n_e < 2 || n_a < 2) {
+        bail!(
+            "the yarn grid detected in the input is {n_e}×{n_a}, which cannot hold a weave (every yarn would float); \
+             pass --grid NExNA or --pattern, or run with prep"
+        );
+    }
     if n_e == 0 || n_a == 0 || n_e > crate::pattern::MAX_SIDE || n_a > crate::pattern::MAX_SIDE {
         bail!("grid {n_e}×{n_a} is outside 1..={}", crate::pattern::MAX_SIDE);
     }
@@ -1255,7 +1261,7 @@ fn finish(
         finals.push(scan);
     }
     if cells && !best.pattern.inverted().has_unbound_yarn() {
-        finals.push(inverted_twin(&best));
+        finals.push(inverted_twin(best));
     }
     let mut chosen: Option<(f32, ClothParams)> = None;
     for mut c in finals {
@@ -1284,5 +1290,23 @@ impl std::fmt::Debug for FitResult {
             .field("iterations", &self.history.len())
             .field("stopped", &self.stopped)
             .finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn inverted_twin_swaps_roles_and_is_its_own_inverse() {
+        let truth = cli::demo_cloth();
+        let twin = inverted_twin(&truth);
+        assert_eq!(twin.pattern, truth.pattern.inverted());
+        assert_eq!(twin.appearance.r_b_e, truth.appearance.r_b_a);
+        assert_eq!(twin.appearance.s_b_a, truth.appearance.s_b_e);
+        assert_eq!((twin.r_e, twin.r_a), (truth.r_a, truth.r_e));
+        let back = inverted_twin(&twin);
+        assert_eq!(back.pattern, truth.pattern);
+        assert_eq!(back.appearance.to_vec(), truth.appearance.to_vec());
     }
 }

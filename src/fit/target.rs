@@ -213,3 +213,58 @@ pub fn colour_clusters(img: &Image, n_e: usize, n_a: usize, c: u32) -> Option<We
     let rows: Vec<Vec<bool>> = (0..n_e).map(|i| lab[i * n_a..(i + 1) * n_a].to_vec()).collect();
     WeavePattern::from_rows_unreduced(&rows).ok()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A one-repeat image whose cells are painted with colour `a` where `p` is 1 and `b` where 0,
+    /// with a dark border in every cell (the part `cell_means` ignores) and a little noise.
+    fn painted(p: &WeavePattern, c: u32, a: [f32; 3], b: [f32; 3]) -> Image {
+        let (w, h) = (p.n_a() as u32 * c, p.n_e() as u32 * c);
+        let mut data = vec![[0.02f32; 3]; (w * h) as usize];
+        for i in 0..p.n_e() {
+            for j in 0..p.n_a() {
+                let (x0, y0, x1, y1) = cell_rect(p.n_e(), i, j, c);
+                for y in y0 + 2..y1 - 2 {
+                    for x in x0 + 2..x1 - 2 {
+                        let wobble = (((x * 7 + y * 13) % 5) as f32 - 2.0) * 0.01;
+                        data[(y * w + x) as usize] = (if p.get(i, j) { a } else { b }).map(|v| v + wobble);
+                    }
+                }
+            }
+        }
+        Image::new(w, h, data)
+    }
+
+    #[test]
+    fn colour_clusters_recover_the_cells_of_each_colour() {
+        let p = WeavePattern::parse("10010/00110/01011/11110/11000").expect("pattern");
+        let img = painted(&p, 12, [0.7, 0.2, 0.1], [0.2, 0.3, 0.6]);
+        let q = colour_clusters(&img, 5, 5, 12).expect("two clusters");
+        assert!(q == p || q == p.inverted(), "{q} vs {p}");
+    }
+
+    #[test]
+    fn colour_clusters_give_up_on_a_uniform_image() {
+        let p = WeavePattern::parse("1100/0110/0011/1001").expect("pattern");
+        let img = painted(&p, 10, [0.5; 3], [0.5; 3]);
+        // Only the ±0.02 wobble separates cells: whatever comes back must not crash, and a flat
+        // image (no wobble at all) gives no clusters.
+        let _ = colour_clusters(&img, 4, 4, 10);
+        let flat = Image::new(40, 40, vec![[0.5; 3]; 1600]);
+        assert!(colour_clusters(&flat, 4, 4, 10).is_none());
+    }
+
+    #[test]
+    fn top_pixels_skip_clipped_gaps() {
+        let mut data = vec![[0.3f32; 3]; 100];
+        data[..20].iter_mut().for_each(|p| *p = [1.0; 3]); // gaps
+        data[20..25].iter_mut().for_each(|p| *p = [0.8; 3]); // highlights
+        let img = Image::new(10, 10, data);
+        let idx = top_pixels(&img, 0.0625);
+        assert_eq!(idx.len(), 5);
+        assert!(idx.iter().all(|&i| (20..25).contains(&i)));
+        assert!(mean_at(&img, &idx).iter().all(|v| (v - 0.8).abs() < 1e-5));
+    }
+}
