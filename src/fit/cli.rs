@@ -652,6 +652,12 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
         } else {
             grid_ok = super::target::detect_grid(&target) == Some((truth.pattern.n_e(), truth.pattern.n_a()));
         }
+        if let Some(dir) = &args.save {
+            let d = dir.join(format!("target_{i}"));
+            std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
+            target.save_png(&d.join("target.png"))?;
+            crate::io::write_atomic(&d.join("truth.json"), serde_json::to_string_pretty(&truth)?.as_bytes())?;
+        }
         let t = Instant::now();
         let res: FitResult = match fit(&target, &opts) {
             Ok(r) => r,
@@ -674,11 +680,7 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
         };
         let secs = t.elapsed().as_secs_f64();
         if let Some(dir) = &args.save {
-            let d = dir.join(format!("target_{i}"));
-            std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
-            target.save_png(&d.join("target.png"))?;
-            crate::io::write_atomic(&d.join("truth.json"), serde_json::to_string_pretty(&truth)?.as_bytes())?;
-            write_fit_outputs(&res, &d, false, args.threads)?;
+            write_fit_outputs(&res, &dir.join(format!("target_{i}")), false, args.threads)?;
         }
         let exact = res.params.cloth.pattern.equivalent(&truth.pattern);
         let errors: Vec<f32> = param_errors(&res.cloth, &truth).iter().map(|e| e.1).collect();
