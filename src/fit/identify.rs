@@ -32,35 +32,20 @@ pub fn appearance_sd(
     let cache = Prepared::new(cloth, scene, &opts).record(&cloth.appearance);
     let px = cache.shade_with_derivatives(&cloth.appearance);
     let (w, h) = cache.size();
-    let b = b.max(1);
     let spans: [f64; N_APPEARANCE] = std::array::from_fn(|k| {
         (crate::params::APPEARANCE_RANGES[k].max - crate::params::APPEARANCE_RANGES[k].min) as f64
     });
     // Rows of J: one per filtered value; clipped values (outside (0, 1)) carry no information.
-    let (bw, bh) = (w / b, h / b);
-    let inv = 1.0 / (b * b) as f64;
     let mut fisher = vec![0.0f64; N_APPEARANCE * N_APPEARANCE];
-    for by in 0..bh {
-        for bx in 0..bw {
-            let mut rows = [[0.0f64; N_APPEARANCE]; 3];
-            for y in by * b..(by + 1) * b {
-                for x in bx * b..(bx + 1) * b {
-                    for (row, p) in rows.iter_mut().zip(px[(y * w + x) as usize].iter()) {
-                        if p.v > 0.0 && p.v < 1.0 {
-                            row.iter_mut().zip(p.d.iter()).for_each(|(r, d)| *r += *d as f64 * inv);
-                        }
-                    }
+    for block in super::block_jacobian(&px, w, h, b) {
+        for (_, row) in &block {
+            for i in 0..N_APPEARANCE {
+                let ri = row[i] as f64 * spans[i];
+                if ri == 0.0 {
+                    continue;
                 }
-            }
-            for row in &rows {
-                for i in 0..N_APPEARANCE {
-                    let ri = row[i] * spans[i];
-                    if ri == 0.0 {
-                        continue;
-                    }
-                    for j in 0..N_APPEARANCE {
-                        fisher[i * N_APPEARANCE + j] += ri * row[j] * spans[j] / sigma2;
-                    }
+                for j in 0..N_APPEARANCE {
+                    fisher[i * N_APPEARANCE + j] += ri * row[j] as f64 * spans[j] / sigma2;
                 }
             }
         }

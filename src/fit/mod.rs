@@ -332,6 +332,37 @@ fn block_filter(img: &Image, b: u32) -> Vec<[f32; 3]> {
     out
 }
 
+/// The `b × b` box filter of [`block_filter`] applied to shaded values with derivatives: per block
+/// and channel, the filtered value (clamped to [0, 1]) and its derivative with respect to the
+/// appearance vector (clipped pixels carry none). Row-major blocks.
+fn block_jacobian(
+    px: &[[crate::shading::real::Dual<N_APPEARANCE>; 3]],
+    w: u32,
+    h: u32,
+    b: u32,
+) -> Vec<[(f32, [f32; N_APPEARANCE]); 3]> {
+    let b = b.max(1);
+    let (bw, bh) = (w / b, h / b);
+    let inv = 1.0 / (b * b) as f32;
+    let mut acc = vec![[(0.0f32, [0.0f32; N_APPEARANCE]); 3]; (bw * bh) as usize];
+    for y in 0..bh * b {
+        for x in 0..bw * b {
+            let p = &px[(y * w + x) as usize];
+            let o = &mut acc[((y / b) * bw + x / b) as usize];
+            for (ok, pk) in o.iter_mut().zip(p.iter()) {
+                let v = pk.v;
+                if v > 0.0 && v < 1.0 {
+                    ok.0 += v * inv;
+                    ok.1.iter_mut().zip(pk.d.iter()).for_each(|(g, d)| *g += d * inv);
+                } else {
+                    ok.0 += v.clamp(0.0, 1.0) * inv;
+                }
+            }
+        }
+    }
+    acc
+}
+
 impl Evaluator {
     fn new(scene: Scene, target: Image, b: u32) -> Self {
         let b = b.max(1);
@@ -350,27 +381,8 @@ impl Evaluator {
     }
     /// Loss and its exact gradient w.r.t. the appearance vector.
     fn loss_grad(&self, cache: &PathCache, a: &Appearance) -> (f32, [f32; N_APPEARANCE]) {
-        let px = cache.shade_with_derivatives(a);
         let (w, h) = cache.size();
-        let b = self.b;
-        let (bw, bh) = (w / b, h / b);
-        let inv = 1.0 / (b * b) as f32;
-        let mut acc = vec![[(0.0f32, [0.0f32; N_APPEARANCE]); 3]; (bw * bh) as usize];
-        for y in 0..bh * b {
-            for x in 0..bw * b {
-                let p = &px[(y * w + x) as usize];
-                let o = &mut acc[((y / b) * bw + x / b) as usize];
-                for k in 0..3 {
-                    let v = p[k].v;
-                    if v > 0.0 && v < 1.0 {
-                        o[k].0 += v * inv;
-                        o[k].1.iter_mut().zip(p[k].d.iter()).for_each(|(g, d)| *g += d * inv);
-                    } else {
-                        o[k].0 += v.clamp(0.0, 1.0) * inv;
-                    }
-                }
-            }
-        }
+        let acc = block_jacobian(&cache.shade_with_derivatives(a), w, h, self.b);
         let n = (acc.len() * 3).max(1) as f32;
         let mut loss = 0.0f32;
         let mut g = [0.0f32; N_APPEARANCE];
@@ -552,41 +564,47 @@ fn candidate_patterns(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<Wea
     cands
 }
 
+/// The value among `values` whose variant of `base` (`set` applied) has the lowest `loss`, with
+/// that loss (the first on ties); `None` when there is none or the stop flag was set first.
+fn best_variant<T: Clone>(
+    ev: &Evaluator,
+    base: &ClothParams,
+    values: impl IntoIterator<Item = T>,
+    set: impl Fn(&mut ClothParams, T),
+    loss: impl Fn(&Evaluator, &mut ClothParams) -> f32,
+    stop: &AtomicBool,
+) -> Option<(f32, T)> {
+    let mut best: Option<(f32, T)> = None;
+    for v in values {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        let mut cand = base.clone();
+        set(&mut cand, v.clone());
+        let l = loss(ev, &mut cand);
+        if best.as_ref().is_none_or(|b| l < b.0) {
+            best = Some((l, v));
+        }
+    }
+    best
+}
+
 /// A common yarn radius from a 0.5-unit grid over Table 1's range, by the pattern loss (own colour
 /// estimate): the radii set the gaps, which the back light makes the brightest, most costly part
 /// of the picture, and the gradient steps move them too slowly from a default.
 fn scan_radii(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> (f32, f32) {
     let (lo, hi) = crate::params::RADIUS_RANGE;
-    let mut best = (f32::INFINITY, (cloth.r_e, cloth.r_a));
-    let mut r = lo.max(1.5);
-    while r <= hi + 1e-6 && !stop.load(Ordering::Relaxed) {
-        let mut cand = cloth.clone();
-        (cand.r_e, cand.r_a) = (r, r);
-        let l = pattern_loss(ev, &mut cand, c);
-        if l < best.0 {
-            best = (l, (r, r));
-        }
-        r += 0.5;
-    }
-    best.1
+    let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
+    let set = |cl: &mut ClothParams, r: f32| (cl.r_e, cl.r_a) = (r, r);
+    best_variant(ev, cloth, grid, set, |e, cl| pattern_loss(e, cl, c), stop)
+        .map_or((cloth.r_e, cloth.r_a), |b| (b.1, b.1))
 }
 
-/// The `n_p` in Table 1's range with the lowest pattern loss for `pattern` (own colour estimate).
-fn scan_plies(ev: &Evaluator, cloth: &ClothParams, pattern: &WeavePattern, c: u32, stop: &AtomicBool) -> u32 {
-    let mut best = (f32::INFINITY, cloth.n_p);
-    for n_p in NP_RANGE.0..=NP_RANGE.1 {
-        if stop.load(Ordering::Relaxed) {
-            break;
-        }
-        let mut cand = cloth.clone();
-        cand.pattern = pattern.clone();
-        cand.n_p = n_p;
-        let l = pattern_loss(ev, &mut cand, c);
-        if l < best.0 {
-            best = (l, n_p);
-        }
-    }
-    best.1
+/// The `n_p` in Table 1's range with the lowest pattern loss (own colour estimate).
+fn scan_plies(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> u32 {
+    let set = |cl: &mut ClothParams, n: u32| cl.n_p = n;
+    best_variant(ev, cloth, NP_RANGE.0..=NP_RANGE.1, set, |e, cl| pattern_loss(e, cl, c), stop)
+        .map_or(cloth.n_p, |b| b.1)
 }
 
 /// The cloth seen with weft and warp roles exchanged where it matters for the picture: every cell
@@ -889,12 +907,11 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         let mut warm: Vec<(f32, ClothParams)> = Vec::new();
         for p in shortlist {
             let mut cand = cloth.clone();
-            // Plies per yarn change every yarn's silhouette and shading, enough to hide the
-            // pattern's signal: each candidate gets its own n_p.
-            cand.pattern = p.clone();
-            (cand.r_e, cand.r_a) = scan_radii(&pre_ev, &cand, cp, stop);
-            cand.n_p = scan_plies(&pre_ev, &cand, &p, cp, stop);
             cand.pattern = p;
+            // Radii and plies per yarn change every yarn's silhouette and shading, enough to hide
+            // the pattern's signal: each candidate gets its own.
+            (cand.r_e, cand.r_a) = scan_radii(&pre_ev, &cand, cp, stop);
+            cand.n_p = scan_plies(&pre_ev, &cand, cp, stop);
             estimate_colours(&ev, &mut cand, c);
             let l = refine::refine(&ev, &mut cand, opts.warmup, opts.lr, opts.radius_every, stop);
             warm.push((l, cand));
@@ -1206,18 +1223,10 @@ fn finish(
     let mut finals = vec![best.clone()];
     let mut rival = best.clone();
     (rival.pattern, rival.n_p, rival.n_f) = (initial.pattern.clone(), initial.n_p, initial.n_f);
+    let quick = Evaluator::new(fit_scene(n_e, n_a, c, 2, opts.seed, &opts.lights), tgt.clone(), opts.loss_block);
     if cells {
-        let quick = Evaluator::new(fit_scene(n_e, n_a, c, 2, opts.seed, &opts.lights), tgt.clone(), opts.loss_block);
-        let mut top: Option<(f32, WeavePattern)> = None;
-        for p in candidate_patterns(&quick, n_e, n_a, c).into_iter().chain([best.pattern.clone()]) {
-            let mut cand = best.clone();
-            cand.pattern = p;
-            let l = state_loss(&quick, &mut cand);
-            if top.as_ref().is_none_or(|t| l < t.0) {
-                top = Some((l, cand.pattern));
-            }
-        }
-        ev.retraces.set(ev.retraces.get() + quick.retraces.get());
+        let cands = candidate_patterns(&quick, n_e, n_a, c).into_iter().chain([best.pattern.clone()]);
+        let top = best_variant(&quick, best, cands, |cl, p| cl.pattern = p, state_loss, stop);
         if let Some((_, p)) = top.filter(|(_, p)| *p != best.pattern && *p != initial.pattern) {
             let mut c2 = best.clone();
             c2.pattern = p;
@@ -1229,32 +1238,13 @@ fn finish(
     }
     // n_p and n_f scanned over Table 1 with the converged appearance (the annealer moves them
     // by small steps, and a wrong ply count is a deep local minimum).
-    let quick = Evaluator::new(fit_scene(n_e, n_a, c, 2, opts.seed, &opts.lights), tgt.clone(), opts.loss_block);
     let mut scan = best.clone();
-    for which in 0..2 {
-        let values: Vec<u32> = if which == 0 {
-            (NP_RANGE.0..=NP_RANGE.1).collect()
-        } else {
-            (NF_RANGE.0..=NF_RANGE.1).step_by(5).collect()
-        };
-        let mut top = (f32::INFINITY, 0);
-        for v in values {
-            let mut cand = scan.clone();
-            if which == 0 {
-                cand.n_p = v
-            } else {
-                cand.n_f = v
-            }
-            let l = state_loss(&quick, &mut cand);
-            if l < top.0 {
-                top = (l, v);
-            }
-        }
-        if which == 0 {
-            scan.n_p = top.1
-        } else {
-            scan.n_f = top.1
-        }
+    if let Some((_, n)) = best_variant(&quick, &scan, NP_RANGE.0..=NP_RANGE.1, |cl, n| cl.n_p = n, state_loss, stop) {
+        scan.n_p = n;
+    }
+    let nf = (NF_RANGE.0..=NF_RANGE.1).step_by(5);
+    if let Some((_, n)) = best_variant(&quick, &scan, nf, |cl, n| cl.n_f = n, state_loss, stop) {
+        scan.n_f = n;
     }
     ev.retraces.set(ev.retraces.get() + quick.retraces.get());
     if scan.n_p != best.n_p || scan.n_f != best.n_f {

@@ -135,18 +135,26 @@ struct Strategies {
 }
 
 impl Strategies {
+    /// Whether the tracer follows a refraction in world direction `lw`: into the tube at x, out
+    /// of it at y.
+    fn follows(&self, lw: Vec3) -> bool {
+        let d = lw.dot(self.nt);
+        if self.inward {
+            d < 0.0
+        } else {
+            d > 0.0
+        }
+    }
+
     /// Summed density with which the vertex's own samplers produce local direction `l` (world
-    /// `lw`); a refraction the tracer would reject has density zero.
+    /// `lw`); a refraction the tracer would not follow has density zero.
     fn pdf(&self, l: Vec3, lw: Vec3) -> f32 {
         let mut p = 0.0;
         if let Some(alpha) = self.refl {
             p += crate::shading::ggx::reflection_pdf(self.v, l, alpha);
         }
-        if let Some((alpha, eta)) = self.refr {
-            let d = lw.dot(self.nt);
-            if (self.inward && d < 0.0) || (!self.inward && d > 0.0) {
-                p += crate::shading::ggx::transmission_pdf(self.v, l, alpha, eta);
-            }
+        if let Some((alpha, eta)) = self.refr.filter(|_| self.follows(lw)) {
+            p += crate::shading::ggx::transmission_pdf(self.v, l, alpha, eta);
         }
         p
     }
@@ -225,7 +233,6 @@ impl Tracer<'_> {
         out: &mut Vec<LightHit>,
     ) -> (u32, u32) {
         let start = out.len() as u32;
-        let nt = self.tube_normal(yarn, pt);
         for light in self.lights {
             let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
             let ls = match light {
@@ -249,7 +256,7 @@ impl Tracer<'_> {
                 continue;
             }
             let l = frame.to_local(ls.dir);
-            if l.z == 0.0 || !self.visible(yarn, pw, pt, nt, ls.dir, ls.dist) {
+            if l.z == 0.0 || !self.visible(yarn, pw, pt, st.nt, ls.dir, ls.dist) {
                 continue;
             }
             let mis = match light.mis_pdf(l.z) {
@@ -366,7 +373,7 @@ impl Tracer<'_> {
                 return;
             };
             let tw = frame.to_world(tl);
-            if tw.dot(nt) >= 0.0 {
+            if !st.follows(tw) {
                 buf.verts.push(vx);
                 return;
             }
@@ -412,7 +419,7 @@ impl Tracer<'_> {
                 return;
             };
             let ow = fy.to_world(ol);
-            if ow.dot(ny) <= 0.0 {
+            if !st.follows(ow) {
                 buf.verts.push(vyx);
                 return;
             }
