@@ -68,6 +68,17 @@ pub fn linear_to_srgb(c: f32) -> f32 {
     }
 }
 
+/// Derivative of [`linear_to_srgb`] (zero outside [0, 1], where the encoding clamps).
+pub fn linear_to_srgb_slope(c: f32) -> f32 {
+    if !(0.0..=1.0).contains(&c) {
+        0.0
+    } else if c <= 0.003_130_8 {
+        12.92
+    } else {
+        1.055 / 2.4 * c.powf(1.0 / 2.4 - 1.0)
+    }
+}
+
 /// sRGB decoding.
 pub fn srgb_to_linear(c: f32) -> f32 {
     if c <= 0.040_45 {

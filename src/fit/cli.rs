@@ -37,7 +37,7 @@ pub struct FitArgs {
     #[arg(long)]
     pub grid: Option<String>,
     /// Optimization iterations.
-    #[arg(long, default_value_t = 160)]
+    #[arg(long, default_value_t = 100)]
     pub iterations: usize,
     /// Pixels per pattern cell of the fit renders.
     #[arg(long, default_value_t = 16)]
@@ -62,7 +62,7 @@ pub struct FitArgs {
     /// Worker threads.
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Fast settings (10 px per cell, 120 iterations).
+    /// Fast settings (10 px per cell, 100 iterations).
     #[arg(long)]
     pub fast: bool,
     /// Do not add the estimated photo noise (noise.json) to fit.png.
@@ -85,7 +85,7 @@ impl FitArgs {
             no_prep: false,
             pattern: None,
             grid: None,
-            iterations: 160,
+            iterations: 100,
             px_per_cell: 16,
             spp: 4,
             seed: 1,
@@ -337,7 +337,7 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value = "none")]
     pub ablation: Ablation,
     /// Optimization iterations per fit.
-    #[arg(long, default_value_t = 160)]
+    #[arg(long, default_value_t = 100)]
     pub iterations: usize,
     /// Pixels per cell (targets and fits).
     #[arg(long, default_value_t = 16)]
@@ -354,7 +354,8 @@ pub struct EvalArgs {
     /// Append the markdown section to this file.
     #[arg(long)]
     pub markdown: Option<PathBuf>,
-    /// Write each target and its fit outputs to DIR/target_<i>/.
+    /// Write each target (PNG, and linear EXR that `woven fit` reproduces exactly), its truth and
+    /// its fit outputs to DIR/target_<i>/.
     #[arg(long)]
     pub save: Option<PathBuf>,
     /// Worker threads.
@@ -368,7 +369,7 @@ impl Default for EvalArgs {
             count: 8,
             seed: 1,
             ablation: Ablation::None,
-            iterations: 160,
+            iterations: 100,
             px_per_cell: 16,
             target_spp: 256,
             max_side: 5,
@@ -656,6 +657,7 @@ pub fn eval(args: &EvalArgs) -> Result<EvalReport> {
             let d = dir.join(format!("target_{i}"));
             std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
             target.save_png(&d.join("target.png"))?;
+            target.save_exr(&d.join("target.exr"))?;
             crate::io::write_atomic(&d.join("truth.json"), serde_json::to_string_pretty(&truth)?.as_bytes())?;
         }
         let t = Instant::now();

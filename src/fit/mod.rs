@@ -1,11 +1,17 @@
 //! `woven fit`: recover pattern, geometry and appearance from one image (pipeline.md §4–5).
 //!
-//! Stages: optional preparation (`prep`) → pattern pre-estimation (greedy sweeps, temperature 0)
-//! → network pre-estimation (when a model exists) → colour pre-estimation (converted to `R^B`
-//! through the renderer's response) → a second greedy pattern sweep with the colours → joint
-//! optimization: Adam on the 30 appearance scalars with exact gradients (`PathCache`), the radii
-//! by same-seed central differences every few iterations, and simulated annealing of the pattern
-//! cells, `n_p` and `n_f` in the same loop (Metropolis, `T_k = 100·0.98^k`), keeping the best state.
+//! Stages: optional preparation (`prep`) → pattern pre-estimation: whole-pattern candidates (both
+//! labellings of the cells' colour clusters, every named weave in every shift) ranked on the
+//! coarse colour layout → network pre-estimation (when a model is given) → per shortlisted
+//! candidate a radius and ply-count scan, the colour pre-estimate (converted to `R^B` through the
+//! renderer's response) and a fixed-pattern polish (Levenberg–Marquardt on the appearance, Newton
+//! steps of the radii; `refine::polish`) → a greedy cell sweep of the best → joint optimization:
+//! Adam on the 30 appearance scalars with exact gradients (`PathCache`), the radii by
+//! simultaneous-perturbation differences every few iterations, and simulated annealing of the
+//! pattern cells, `n_p` and `n_f` in the same loop (Metropolis, `T_k = 100·0.98^k`), keeping the
+//! best state → finish: the annealed best against its rivals (warmed-up candidates, re-ranked
+//! candidate, n_p/n_f scan, inverted twin), each polished; a greedy cell pass; the winner polished
+//! at the fit's spp and then at `fine_spp`.
 //!
 //! **Loss unit.** The gradient loss is the linear-RGB MSE plus the barrier (λ = 0.01 per scalar, raw
 //! units). The annealing energy is `E = K·MSE`; `K` is calibrated per fit from a few proposals
@@ -34,6 +40,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 use target::{fit_scene, resample};
+
+/// Radius rounds of a warm-up polish (pre-estimation).
+const WARMUP_ROUNDS: usize = 2;
+/// Radius rounds of the winner's polish at the fit's spp.
+const POLISH_ROUNDS: usize = 4;
+/// Radius rounds of the winner's polish at `fine_spp`.
+const FINE_ROUNDS: usize = 1;
 
 /// Smallest accepted input side in pixels.
 pub const MIN_INPUT_SIDE: u32 = 16;
@@ -83,14 +96,19 @@ pub struct FitOptions {
     pub max_sweeps: usize,
     /// Patterns of the candidate ranking that get a warm-up.
     pub shortlist: usize,
-    /// Gradient steps of each warm-up (pre-estimation, fixed pattern).
+    /// Levenberg–Marquardt iterations per round of each warm-up (pre-estimation, fixed pattern;
+    /// see `refine::polish`).
     pub warmup: usize,
     /// Most joint runs (each from a warmed-up candidate; the iterations are shared out).
     pub starts: usize,
     /// A runner-up gets its own run when its warm-up loss is within this fraction of the leader's.
     pub start_margin: f32,
-    /// Gradient steps that finish the best state (and the pre-estimate it competes with).
+    /// Levenberg–Marquardt iterations per round that finish the best state and its rivals.
     pub finish: usize,
+    /// Samples per pixel of the last polish of the winner (0: none). The 4-spp fit renders carry
+    /// more noise than the misfit left after the finish; a fixed sample set at higher spp moves
+    /// the optimum closer to the noise-free one.
+    pub fine_spp: u32,
     /// Adam step size as a fraction of each parameter's range.
     pub lr: f32,
     /// Radii step every this many iterations (0: radii fixed).
@@ -130,18 +148,19 @@ impl Default for FitOptions {
             prep: true,
             pattern: None,
             grid: None,
-            iterations: 160,
+            iterations: 100,
             px_per_cell: 16,
             spp: 4,
             pre_px_per_cell: 0,
             pre_spp: 2,
-            final_spp: 64,
+            final_spp: 256,
             max_sweeps: 2,
-            shortlist: 2,
-            warmup: 20,
+            shortlist: 1,
+            warmup: 8,
             starts: 2,
             start_margin: 0.15,
-            finish: 15,
+            finish: 6,
+            fine_spp: 16,
             loss_block: 2,
             lr: 0.03,
             radius_every: 5,
@@ -167,12 +186,12 @@ impl FitOptions {
     /// Fast settings (tests, demo, eval): smaller renders, fewer iterations.
     pub fn fast() -> Self {
         FitOptions {
-            iterations: 120,
+            iterations: 100,
             px_per_cell: 10,
             spp: 4,
             pre_px_per_cell: 0,
             pre_spp: 2,
-            final_spp: 64,
+            final_spp: 256,
             ..Default::default()
         }
     }
@@ -306,9 +325,12 @@ pub fn check_input(img: &Image) -> Result<()> {
 }
 
 /// Renders a cloth against a fixed target. The loss compares images clamped to [0, 1] (display
-/// range: bright gaps seeing the back light are ~5 in linear units and binary per sample) and
-/// averaged over `b × b` pixel blocks, which divides the Monte Carlo variance by `b²` while keeping
-/// the cell structure (cells are ≥ 8 px).
+/// range: bright gaps seeing the back light are ~5 in linear units and binary per sample),
+/// averaged over `b × b` pixel blocks (which divides the Monte Carlo variance by `b²` while keeping
+/// the cell structure; cells are ≥ 8 px), then sRGB-encoded: in linear units the white gaps
+/// outweigh everything else, and which yarn lies on top of a cell between two dark yarns changed
+/// the loss less than the render noise did (a basket weave lost to a wrong pattern with 15 dB
+/// lower PSNR); sRGB is also the space the reported PSNR is measured in.
 struct Evaluator {
     scene: Scene,
     target: Image,
@@ -316,6 +338,11 @@ struct Evaluator {
     b: u32,
     opts: RenderOptions,
     retraces: std::cell::Cell<usize>,
+}
+
+/// The box-filtered image (see [`block_filter`]) sRGB-encoded: the values the loss compares.
+fn loss_values(img: &Image, b: u32) -> Vec<[f32; 3]> {
+    block_filter(img, b).into_iter().map(|p| p.map(crate::image_io::linear_to_srgb)).collect()
 }
 
 fn block_filter(img: &Image, b: u32) -> Vec<[f32; 3]> {
@@ -366,7 +393,7 @@ fn block_jacobian(
 impl Evaluator {
     fn new(scene: Scene, target: Image, b: u32) -> Self {
         let b = b.max(1);
-        let target_f = block_filter(&target, b);
+        let target_f = loss_values(&target, b);
         Evaluator { scene, target, target_f, b, opts: RenderOptions::default(), retraces: std::cell::Cell::new(0) }
     }
     fn record(&self, cloth: &ClothParams) -> PathCache {
@@ -375,25 +402,52 @@ impl Evaluator {
     }
     /// Loss of a rendered image.
     fn mse_of(&self, img: &Image) -> f32 {
-        let f = block_filter(img, self.b);
+        let f = loss_values(img, self.b);
         let n = (f.len() * 3).max(1) as f32;
         f.iter().zip(&self.target_f).map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()).sum::<f32>() / n
     }
-    /// Loss and its exact gradient w.r.t. the appearance vector.
-    fn loss_grad(&self, cache: &PathCache, a: &Appearance) -> (f32, [f32; N_APPEARANCE]) {
+    /// Loss, its exact gradient and (with `hessian`) its Gauss–Newton Hessian `2JᵀJ/n`
+    /// (row-major, f64) w.r.t. the appearance vector; `J` holds the derivatives of the sRGB-encoded
+    /// block values (chain rule through [`crate::image_io::linear_to_srgb_slope`]).
+    fn derivatives(&self, cache: &PathCache, a: &Appearance, hessian: bool) -> (f32, [f32; N_APPEARANCE], Vec<f64>) {
+        use crate::image_io::{linear_to_srgb, linear_to_srgb_slope};
         let (w, h) = cache.size();
         let acc = block_jacobian(&cache.shade_with_derivatives(a), w, h, self.b);
         let n = (acc.len() * 3).max(1) as f32;
         let mut loss = 0.0f32;
         let mut g = [0.0f32; N_APPEARANCE];
+        let mut hess = vec![0.0f64; if hessian { N_APPEARANCE * N_APPEARANCE } else { 0 }];
         for (o, t) in acc.iter().zip(&self.target_f) {
             for k in 0..3 {
-                let e = o[k].0 - t[k];
+                let (v, dv) = (o[k].0, &o[k].1);
+                let e = linear_to_srgb(v) - t[k];
+                let slope = linear_to_srgb_slope(v);
                 loss += e * e;
-                g.iter_mut().zip(o[k].1.iter()).for_each(|(gi, di)| *gi += 2.0 * e * di);
+                let d: [f32; N_APPEARANCE] = dv.map(|x| x * slope);
+                g.iter_mut().zip(d.iter()).for_each(|(gi, di)| *gi += 2.0 * e * di);
+                if !hessian {
+                    continue;
+                }
+                for i in 0..N_APPEARANCE {
+                    if d[i] == 0.0 {
+                        continue;
+                    }
+                    let row = &mut hess[i * N_APPEARANCE..(i + 1) * N_APPEARANCE];
+                    row.iter_mut().zip(d.iter()).for_each(|(hij, dj)| *hij += 2.0 * (d[i] * dj) as f64);
+                }
             }
         }
-        (loss / n, g.map(|x| x / n))
+        hess.iter_mut().for_each(|x| *x /= n as f64);
+        (loss / n, g.map(|x| x / n), hess)
+    }
+    /// Loss, its exact gradient and its Gauss–Newton Hessian (see [`Evaluator::derivatives`]).
+    fn loss_grad_hessian(&self, cache: &PathCache, a: &Appearance) -> (f32, [f32; N_APPEARANCE], Vec<f64>) {
+        self.derivatives(cache, a, true)
+    }
+    /// Loss and its exact gradient w.r.t. the appearance vector.
+    fn loss_grad(&self, cache: &PathCache, a: &Appearance) -> (f32, [f32; N_APPEARANCE]) {
+        let (l, g, _) = self.derivatives(cache, a, false);
+        (l, g)
     }
 }
 
@@ -476,7 +530,9 @@ fn fit_texture(ev: &Evaluator, cloth: &ClothParams, k: u32, iters: usize) -> cra
             let v = img.data[px as usize];
             for c in 0..3 {
                 if v[c] > 0.0 && v[c] < 1.0 {
-                    g[slot as usize * 3 + c] += 2.0 * (f[fi][c] - ev.target_f[fi][c]) / n * inv * rgb[c];
+                    let (fv, slope) = (f[fi][c], crate::image_io::linear_to_srgb_slope(f[fi][c]));
+                    let e = crate::image_io::linear_to_srgb(fv) - ev.target_f[fi][c];
+                    g[slot as usize * 3 + c] += 2.0 * e * slope / n * inv * rgb[c];
                 }
             }
         }
@@ -526,8 +582,10 @@ pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
 /// weave that fits the grid, in every shift, each scored with its own colour estimate. Returns
 /// the `keep` best patterns, best first.
 fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, stop: &AtomicBool) -> Vec<WeavePattern> {
-    let mut cands = vec![cloth.pattern.clone()];
-    cands.extend(candidate_patterns(ev, cloth.pattern.n_e(), cloth.pattern.n_a(), c));
+    let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+    let clusters = cluster_candidates(ev, n_e, n_a, c);
+    let templates = template_candidates(n_e, n_a);
+    let cands = [cloth.pattern.clone()].into_iter().chain(clusters.iter().cloned()).chain(templates.iter().cloned());
     let mut scored: Vec<(f32, WeavePattern)> = Vec::new();
     for p in cands {
         if stop.load(Ordering::Relaxed) {
@@ -544,11 +602,15 @@ fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, sto
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
     // The best named weave always goes on to the warm-up: where the two colours are close, a
     // noisy colour clustering can out-score the true weave on the coarse layout.
-    let templates = template_candidates(cloth.pattern.n_e(), cloth.pattern.n_a());
+    // Likewise both labellings of the colour clusters: on a random weave one of them is usually
+    // within a few cells of the truth, while the coarse layout at the default appearance can rank
+    // a shifted satin or twill above it, and cannot tell the two labellings apart.
     let best_template = scored.iter().find(|(_, p)| templates.contains(p)).map(|(_, p)| p.clone());
     let mut out: Vec<WeavePattern> = scored.into_iter().take(keep.max(1)).map(|(_, p)| p).collect();
-    if let Some(t) = best_template.filter(|t| !out.contains(t)) {
-        out.push(t);
+    for t in best_template.into_iter().chain(clusters) {
+        if !out.contains(&t) {
+            out.push(t);
+        }
     }
     out
 }
@@ -556,12 +618,17 @@ fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, sto
 /// Whole-pattern candidates for an `n_e × n_a` grid: both labellings of the target's colour
 /// clusters, then every named weave that fits (see [`template_candidates`]).
 fn candidate_patterns(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
-    let mut cands = Vec::new();
-    if let Some(p) = target::colour_clusters(&ev.target, n_e, n_a, c) {
-        cands.extend([p.inverted(), p].into_iter().filter(|p| !p.has_unbound_yarn()));
-    }
+    let mut cands = cluster_candidates(ev, n_e, n_a, c);
     cands.extend(template_candidates(n_e, n_a));
     cands
+}
+
+/// Both labellings of the target's colour clusters (see [`target::colour_clusters`]) that leave
+/// no yarn floating.
+fn cluster_candidates(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
+    target::colour_clusters(&ev.target, n_e, n_a, c)
+        .map(|p| [p.inverted(), p].into_iter().filter(|p| !p.has_unbound_yarn()).collect())
+        .unwrap_or_default()
 }
 
 /// The value among `values` whose variant of `base` (`set` applied) has the lowest `loss`, with
@@ -592,12 +659,24 @@ fn best_variant<T: Clone>(
 /// A common yarn radius from a 0.5-unit grid over Table 1's range, by the pattern loss (own colour
 /// estimate): the radii set the gaps, which the back light makes the brightest, most costly part
 /// of the picture, and the gradient steps move them too slowly from a default.
-fn scan_radii(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> (f32, f32) {
+/// Returns that and, from it, each family's radius on the same grid with the other held (weft and
+/// warp yarns can differ by half the range, more than the polish's Newton steps cover).
+fn scan_radii(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> [(f32, f32); 2] {
     let (lo, hi) = crate::params::RADIUS_RANGE;
-    let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
-    let set = |cl: &mut ClothParams, r: f32| (cl.r_e, cl.r_a) = (r, r);
-    best_variant(ev, cloth, grid, set, |e, cl| pattern_loss(e, cl, c), stop)
-        .map_or((cloth.r_e, cloth.r_a), |b| (b.1, b.1))
+    let grid = || (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
+    let loss = |e: &Evaluator, cl: &mut ClothParams| pattern_loss(e, cl, c);
+    let mut cl = cloth.clone();
+    if let Some((_, r)) = best_variant(ev, &cl, grid(), |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
+        (cl.r_e, cl.r_a) = (r, r);
+    }
+    let common = (cl.r_e, cl.r_a);
+    if let Some((_, r)) = best_variant(ev, &cl, grid(), |cl, r| cl.r_e = r, loss, stop) {
+        cl.r_e = r;
+    }
+    if let Some((_, r)) = best_variant(ev, &cl, grid(), |cl, r| cl.r_a = r, loss, stop) {
+        cl.r_a = r;
+    }
+    [common, (cl.r_e, cl.r_a)]
 }
 
 /// The `n_p` in Table 1's range with the lowest pattern loss (own colour estimate).
@@ -878,6 +957,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         body_texture: None,
     };
     let mut starts = vec![cloth.clone()];
+    let mut warmed: Vec<ClothParams> = Vec::new();
     if opts.pre_estimate {
         let cp = if opts.pre_px_per_cell == 0 { c } else { opts.pre_px_per_cell };
         let pre_scene = fit_scene(n_e, n_a, cp, opts.pre_spp, opts.seed, &opts.lights);
@@ -910,10 +990,27 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             cand.pattern = p;
             // Radii and plies per yarn change every yarn's silhouette and shading, enough to hide
             // the pattern's signal: each candidate gets its own.
-            (cand.r_e, cand.r_a) = scan_radii(&pre_ev, &cand, cp, stop);
-            cand.n_p = scan_plies(&pre_ev, &cand, cp, stop);
-            estimate_colours(&ev, &mut cand, c);
-            let l = refine::refine(&ev, &mut cand, opts.warmup, opts.lr, opts.radius_every, stop);
+            // The scans' loss (default appearance but the colours, 2 spp) can prefer per-family
+            // radii that the converged appearance does not: both go through a short descent of the
+            // appearance, the better one is polished.
+            let mut best_radii: Option<(f32, ClothParams)> = None;
+            for (k, r) in scan_radii(&pre_ev, &cand, cp, stop).into_iter().enumerate() {
+                if k == 1 && best_radii.as_ref().is_some_and(|b| (b.1.r_e, b.1.r_a) == r) {
+                    continue;
+                }
+                let mut v = cand.clone();
+                (v.r_e, v.r_a) = r;
+                v.n_p = scan_plies(&pre_ev, &v, cp, stop);
+                estimate_colours(&ev, &mut v, c);
+                let l = refine::polish(&ev, &mut v, 0, opts.warmup, stop);
+                if best_radii.as_ref().is_none_or(|b| l < b.0) {
+                    best_radii = Some((l, v));
+                }
+            }
+            if let Some((_, v)) = best_radii {
+                cand = v;
+            }
+            let l = refine::polish(&ev, &mut cand, WARMUP_ROUNDS, opts.warmup, stop);
             warm.push((l, cand));
         }
         ev.retraces.set(ev.retraces.get() + pre_ev.retraces.get());
@@ -921,6 +1018,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         // A runner-up within `start_margin` of the leader is too close to call at this stage (a
         // pattern and its inverse with swapped colours often are): it gets a joint run of its own.
         let lead = warm.first().map(|w| w.0).unwrap_or(0.0);
+        warmed = warm.iter().map(|w| w.1.clone()).collect();
         starts = warm
             .into_iter()
             .enumerate()
@@ -957,7 +1055,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     let mut checkpoints = Vec::new();
     let mut energy_scale = None;
     let mut stopped = false;
-    let mut chosen: Option<(f32, ClothParams, (f32, ClothParams))> = None;
+    let mut runs: Vec<(f32, ClothParams)> = Vec::new();
     for (si, start) in starts.iter().enumerate() {
         if stop.load(Ordering::Relaxed) {
             stopped = true;
@@ -968,27 +1066,33 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         history.extend(run.history);
         checkpoints.extend(run.checkpoints);
         stopped |= run.stopped;
-        let done = if opts.polish && !stopped && per > 0 {
-            finish(&ev, &run.best.1, start, &tgt, c, opts)
-        } else {
-            run.best.clone()
-        };
-        if chosen.as_ref().is_none_or(|w| done.0 < w.0) {
-            chosen = Some((done.0, done.1, run.best));
-        }
+        runs.push(run.best);
     }
     pb.finish_and_clear();
     stopped |= stop.load(Ordering::Relaxed);
     let energy_scale = energy_scale.unwrap_or(0.0);
-    let (mut best_cloth, best) = match chosen {
-        Some((_, c, b)) => (c, b),
-        None => (initial.clone(), (f32::INFINITY, initial.clone())),
+    runs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let best = runs.first().cloned().unwrap_or_else(|| (f32::INFINITY, initial.clone()));
+    let mut best_cloth = if opts.polish && !stopped && per > 0 {
+        let others: Vec<ClothParams> =
+            runs.iter().skip(1).map(|r| r.1.clone()).chain(starts.iter().cloned()).chain(warmed).collect();
+        finish(&ev, &best.1, &others, &tgt, c, opts).1
+    } else {
+        best.1.clone()
     };
     checkpoints.push(Checkpoint {
         iter: history.len(),
         secs: t_start.elapsed().as_secs_f64(),
         cloth: best_cloth.clone(),
     });
+    if opts.fine_spp > 0 && !stopped {
+        // The winner, polished to convergence at the fit's spp, then at `fine_spp` (another seed).
+        refine::polish(&ev, &mut best_cloth, POLISH_ROUNDS, opts.finish, stop);
+        let fine_scene = fit_scene(n_e, n_a, c, opts.fine_spp, opts.seed.wrapping_add(3), &opts.lights);
+        let fine = Evaluator::new(fine_scene, tgt.clone(), opts.loss_block);
+        refine::polish(&fine, &mut best_cloth, FINE_ROUNDS, opts.finish, stop);
+        ev.retraces.set(ev.retraces.get() + fine.retraces.get());
+    }
     if opts.svcolor > 0 && !stopped {
         best_cloth.body_texture = Some(fit_texture(&ev, &best_cloth, opts.svcolor, 60));
     }
@@ -1201,15 +1305,15 @@ fn joint_loop(
     JointRun { best, history, checkpoints, energy_scale, stopped }
 }
 
-/// Finish of a joint run (the annealed `best`, started from `initial`): rivals that the
-/// annealer's small steps could not reach get the same short gradient descent as the best, with its
-/// converged appearance (a state found early was scored with a less converged appearance than one
-/// found late), the lowest loss wins; then a greedy pass over the cells and, if it changed the
-/// pattern, another descent. Returns the loss and the cloth.
+/// Finish of the joint runs (`best`, the lowest annealed state; `others`, the other runs' best
+/// states, the runs' starts and the warmed-up candidates): rivals that the annealer's small steps could not reach get the
+/// same short polish as the best, with its converged appearance (a state found early was scored
+/// with a less converged appearance than one found late), the lowest loss wins; then a greedy pass
+/// over the cells and, if it changed the pattern, another polish. Returns the loss and the cloth.
 fn finish(
     ev: &Evaluator,
     best: &ClothParams,
-    initial: &ClothParams,
+    others: &[ClothParams],
     tgt: &Image,
     c: u32,
     opts: &FitOptions,
@@ -1217,24 +1321,26 @@ fn finish(
     let stop = &*opts.stop;
     let cells = opts.pattern.is_none();
     let (n_e, n_a) = (best.pattern.n_e(), best.pattern.n_a());
-    // Rivals of the annealed best, all with its converged appearance: the pre-estimate's
-    // discrete state, the best whole-pattern candidate re-ranked with that appearance (a
-    // cheaper 2-spp trace), and the inverted twin.
+    // Rivals of the annealed best: the other runs' best states, the starts and the warmed-up
+    // candidates (each with its own appearance: a pattern's inverse comes with swapped colours),
+    // then, with the best's converged appearance, the best whole-pattern candidate re-ranked (a
+    // cheaper 2-spp trace), an n_p/n_f scan and the inverted twin.
+    let discrete = |c: &ClothParams| (c.pattern.clone(), c.n_p, c.n_f);
     let mut finals = vec![best.clone()];
-    let mut rival = best.clone();
-    (rival.pattern, rival.n_p, rival.n_f) = (initial.pattern.clone(), initial.n_p, initial.n_f);
+    for o in others {
+        if !finals.iter().any(|f| discrete(f) == discrete(o)) {
+            finals.push(o.clone());
+        }
+    }
     let quick = Evaluator::new(fit_scene(n_e, n_a, c, 2, opts.seed, &opts.lights), tgt.clone(), opts.loss_block);
     if cells {
         let cands = candidate_patterns(&quick, n_e, n_a, c).into_iter().chain([best.pattern.clone()]);
         let top = best_variant(&quick, best, cands, |cl, p| cl.pattern = p, state_loss, stop);
-        if let Some((_, p)) = top.filter(|(_, p)| *p != best.pattern && *p != initial.pattern) {
+        if let Some((_, p)) = top.filter(|(_, p)| finals.iter().all(|f| f.pattern != *p)) {
             let mut c2 = best.clone();
             c2.pattern = p;
             finals.push(c2);
         }
-    }
-    if rival.pattern != best.pattern || rival.n_p != best.n_p || rival.n_f != best.n_f {
-        finals.push(rival);
     }
     // n_p and n_f scanned over Table 1 with the converged appearance (the annealer moves them
     // by small steps, and a wrong ply count is a deep local minimum).
@@ -1246,7 +1352,6 @@ fn finish(
     if let Some((_, n)) = best_variant(&quick, &scan, nf, |cl, n| cl.n_f = n, state_loss, stop) {
         scan.n_f = n;
     }
-    ev.retraces.set(ev.retraces.get() + quick.retraces.get());
     if scan.n_p != best.n_p || scan.n_f != best.n_f {
         finals.push(scan);
     }
@@ -1255,20 +1360,66 @@ fn finish(
     }
     let mut chosen: Option<(f32, ClothParams)> = None;
     for mut c in finals {
-        let l = refine::refine(ev, &mut c, opts.finish, opts.lr * 0.3, opts.radius_every, stop);
+        let l = refine::polish(ev, &mut c, 0, opts.finish, stop);
         if chosen.as_ref().is_none_or(|w| l < w.0) {
             chosen = Some((l, c));
         }
     }
     let (mut loss, mut best_cloth) = chosen.unwrap_or_else(|| (f32::INFINITY, best.clone()));
     if cells {
-        let before = best_cloth.pattern.clone();
-        greedy_sweeps(ev, &mut best_cloth, 1, stop, state_loss);
-        if best_cloth.pattern != before {
-            loss = refine::refine(ev, &mut best_cloth, opts.finish / 2, opts.lr * 0.3, opts.radius_every, stop);
+        for _ in 0..TOGGLE_ROUNDS {
+            match toggle_contest(ev, &quick, &best_cloth, loss, opts) {
+                Some((l, c)) => (loss, best_cloth) = (l, c),
+                None => break,
+            }
         }
     }
+    ev.retraces.set(ev.retraces.get() + quick.retraces.get());
     (loss, best_cloth)
+}
+
+/// Most single-cell contests at the end of the finish.
+const TOGGLE_ROUNDS: usize = 3;
+/// Cell toggles per contest that get their own appearance descent.
+const TOGGLE_FINALISTS: usize = 4;
+
+/// One contest of single-cell changes: every cell toggle of `cloth` is scored with its appearance
+/// held (a cheap trace on `quick`), then the [`TOGGLE_FINALISTS`] best get a Levenberg–Marquardt
+/// descent of the appearance on `ev` and compete with `loss`, the cloth's own polished loss.
+/// With the appearance held, a wrong cell whose yarn colours are close (or that the appearance
+/// has adapted to) costs little to keep, so a greedy pass at fixed appearance can leave it.
+/// Returns the winning toggle, if one beats `loss`.
+fn toggle_contest(
+    ev: &Evaluator,
+    quick: &Evaluator,
+    cloth: &ClothParams,
+    loss: f32,
+    opts: &FitOptions,
+) -> Option<(f32, ClothParams)> {
+    let stop = &*opts.stop;
+    let mut scored: Vec<(f32, ClothParams)> = Vec::new();
+    for i in 0..cloth.pattern.n_e() {
+        for j in 0..cloth.pattern.n_a() {
+            if stop.load(Ordering::Relaxed) {
+                return None;
+            }
+            let mut cand = cloth.clone();
+            cand.pattern = cloth.pattern.toggled(i, j);
+            if cand.pattern.has_unbound_yarn() && !cloth.pattern.has_unbound_yarn() {
+                continue;
+            }
+            scored.push((state_loss(quick, &mut cand), cand));
+        }
+    }
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut best: Option<(f32, ClothParams)> = None;
+    for (_, mut cand) in scored.into_iter().take(TOGGLE_FINALISTS) {
+        let l = refine::polish(ev, &mut cand, 0, opts.finish, stop);
+        if l < loss && best.as_ref().is_none_or(|b| l < b.0) {
+            best = Some((l, cand));
+        }
+    }
+    best
 }
 
 impl std::fmt::Debug for FitResult {

@@ -81,9 +81,84 @@ pub fn tile(img: &Image, nx: u32, ny: u32) -> Image {
     Image::new(w, h, data.collect())
 }
 
-/// Detect the yarn grid `(n_e, n_a)` of an image that holds exactly one repeat, from the yarn
-/// pitch that `prep` finds on a 3×3 tiling of it (no rectification, no Kernel PCA).
+/// Least geometric mean of the two comb fractions of a yarn count (see [`yarn_count`]).
+const COMB_MIN: f32 = 0.45;
+
+/// A count must score at least this fraction of each of its divisors' scores: the edges of a
+/// yarn, and the stripes of its plies, put power on the harmonics of twice the count too, but
+/// less than on the count's own.
+const COMB_DIVISOR: f32 = 0.7;
+
+/// Fewest pixels per yarn a count may imply.
+const MIN_PX_PER_YARN: usize = 4;
+
+/// Fraction of a periodic profile's AC power (DFT, bins `1..=len/2`) on the harmonics of `n`.
+fn comb_fraction(power: &[f32], n: usize) -> f32 {
+    let total: f32 = power.iter().skip(1).sum();
+    if total <= 0.0 {
+        return 0.0;
+    }
+    power.iter().skip(n).step_by(n).sum::<f32>() / total
+}
+
+/// Power spectrum (bins `0..=len/2`) of a periodic profile.
+fn power_spectrum(profile: &[f32]) -> Vec<f32> {
+    use rustfft::num_complex::Complex;
+    let n = profile.len();
+    let mean = profile.iter().sum::<f32>() / n.max(1) as f32;
+    let mut buf: Vec<Complex<f32>> = profile.iter().map(|v| Complex::new(v - mean, 0.0)).collect();
+    rustfft::FftPlanner::new().plan_fft_forward(n).process(&mut buf);
+    buf[..=n / 2].iter().map(|c| c.norm_sqr()).collect()
+}
+
+/// Number of yarns across one repeat from two periodic profiles along the axis: the mean
+/// luminance (bright yarn centres, dark boundaries) and the mean absolute luminance derivative
+/// across the axis (yarn edges). A count `n` is plausible when the harmonics of `n` carry a large
+/// part of both spectra (geometric mean ≥ [`COMB_MIN`]) and not much less than any of its
+/// divisors does ([`COMB_DIVISOR`]); the largest plausible count wins. The
+/// luminance alone has strong low harmonics from the weave's colour layout (a divisor of the true
+/// count); the edges alone have two edges per yarn (twice the count); both together single out
+/// the yarn pitch.
+fn yarn_count(luminance: &[f32], edges: &[f32]) -> Option<usize> {
+    let (pl, pe) = (power_spectrum(luminance), power_spectrum(edges));
+    let max_n = (luminance.len() / MIN_PX_PER_YARN).min(crate::pattern::MAX_SIDE);
+    let score = |n: usize| (comb_fraction(&pl, n) * comb_fraction(&pe, n)).sqrt();
+    let plausible = |n: usize| {
+        let s = score(n);
+        s >= COMB_MIN && (2..n).filter(|d| n.is_multiple_of(*d)).all(|d| s >= COMB_DIVISOR * score(d))
+    };
+    (2..=max_n).rev().find(|&n| plausible(n))
+}
+
+/// Yarn grid `(n_e, n_a)` of an image holding exactly one repeat, from the luminance and edge
+/// profiles along each axis (see [`yarn_count`]); `None` when an axis has no plausible count.
+pub fn comb_grid(img: &Image) -> Option<(usize, usize)> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    let lum: Vec<f32> = img.data.iter().map(|p| (p[0] + p[1] + p[2]).clamp(0.0, 3.0) / 3.0).collect();
+    let at = |x: usize, y: usize| lum[(y % h) * w + x % w];
+    let (mut row_l, mut row_e) = (vec![0.0f32; h], vec![0.0f32; h]);
+    let (mut col_l, mut col_e) = (vec![0.0f32; w], vec![0.0f32; w]);
+    for y in 0..h {
+        for x in 0..w {
+            let v = at(x, y);
+            row_l[y] += v;
+            col_l[x] += v;
+            row_e[y] += (at(x, y + 1) - v).abs();
+            col_e[x] += (at(x + 1, y) - v).abs();
+        }
+    }
+    Some((yarn_count(&row_l, &row_e)?, yarn_count(&col_l, &col_e)?))
+}
+
+/// Detect the yarn grid `(n_e, n_a)` of an image that holds exactly one repeat: the comb of the
+/// luminance and edge spectra ([`comb_grid`]), else the yarn pitch that `prep` finds on a 3×3
+/// tiling of it (no rectification, no Kernel PCA).
 pub fn detect_grid(img: &Image) -> Option<(usize, usize)> {
+    comb_grid(img).or_else(|| prep_grid(img))
+}
+
+/// Grid from `prep`'s yarn pitch on a 3×3 tiling of a one-repeat image.
+fn prep_grid(img: &Image) -> Option<(usize, usize)> {
     let tiled = tile(img, 3, 3);
     let opts = crate::prep::PrepOptions {
         rectify: false,

@@ -1,0 +1,47 @@
+//! Yarn-grid detection of one-repeat inputs (`woven fit --no-prep` without `--grid`): random
+//! cloths from the evaluation's generator (presets and random patterns, appearance uniform in
+//! Table 1, radii 2.5–5), rendered at integer and fractional pixels per cell.
+
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use woven::fit::cli::{random_cloth, synthetic_target};
+use woven::fit::target::{detect_grid, resample};
+
+/// Targets per setting (`WOVEN_GRID_COUNT` overrides, for the wider check in docs/benchmarks.md).
+fn count() -> usize {
+    std::env::var("WOVEN_GRID_COUNT").ok().and_then(|s| s.parse().ok()).unwrap_or(20)
+}
+
+/// Detection rate over `count()` random targets rendered at `c` px per cell, then resampled by
+/// `scale`.
+fn rate(seed: u64, c: u32, scale: f32) -> f32 {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let n = count();
+    let mut ok = 0;
+    for k in 0..n {
+        let truth = random_cloth(&mut rng, 5);
+        let img = synthetic_target(&truth, c, 16, 900 + k as u64, Some(2));
+        let img = resample(&img, (img.width as f32 * scale).round() as u32, (img.height as f32 * scale).round() as u32);
+        let want = (truth.pattern.n_e(), truth.pattern.n_a());
+        let got = detect_grid(&img);
+        if got == Some(want) {
+            ok += 1;
+        } else {
+            eprintln!("seed {seed} c {c} scale {scale} target {k}: {} true {want:?} detected {got:?}", truth.pattern);
+        }
+    }
+    let r = ok as f32 / n as f32;
+    eprintln!("seed {seed} c {c} scale {scale}: {ok}/{n} = {r:.3}");
+    r
+}
+
+#[test]
+fn grid_of_random_one_repeat_targets_at_16_px_per_cell() {
+    assert!(rate(11, 16, 1.0) >= 0.95);
+}
+
+#[test]
+fn grid_at_10_px_per_cell_and_fractional_scale() {
+    assert!(rate(12, 10, 1.0) >= 0.9);
+    assert!(rate(13, 16, 0.8) >= 0.9);
+}
