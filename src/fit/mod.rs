@@ -42,9 +42,11 @@ use std::time::Instant;
 use target::{fit_scene, resample};
 
 /// Radius rounds of a warm-up polish (pre-estimation).
-const WARMUP_ROUNDS: usize = 2;
+const WARMUP_ROUNDS: usize = 1;
 /// Radius rounds of the winner's polish at the fit's spp.
 const POLISH_ROUNDS: usize = 4;
+/// Appearance restarts of the winner (see `refine::appearance_restarts`).
+const RESTARTS: usize = 6;
 /// Radius rounds of the winner's polish at `fine_spp`.
 const FINE_ROUNDS: usize = 1;
 
@@ -154,7 +156,7 @@ impl Default for FitOptions {
             pre_px_per_cell: 0,
             pre_spp: 2,
             final_spp: 256,
-            max_sweeps: 2,
+            max_sweeps: 1,
             shortlist: 1,
             warmup: 8,
             starts: 2,
@@ -623,12 +625,19 @@ fn candidate_patterns(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<Wea
     cands
 }
 
-/// Both labellings of the target's colour clusters (see [`target::colour_clusters`]) that leave
-/// no yarn floating.
+/// The cells read from the target: the yarn-direction labelling
+/// ([`target::orientation_labelling`]) and both labellings of the colour clusters
+/// ([`target::colour_clusters`]), those that leave no yarn floating.
 fn cluster_candidates(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
-    target::colour_clusters(&ev.target, n_e, n_a, c)
-        .map(|p| [p.inverted(), p].into_iter().filter(|p| !p.has_unbound_yarn()).collect())
-        .unwrap_or_default()
+    let mut out: Vec<WeavePattern> = Vec::new();
+    let labellings = target::orientation_labelling(&ev.target, n_e, n_a, c).into_iter();
+    let clusters = target::colour_clusters(&ev.target, n_e, n_a, c).into_iter().flat_map(|p| [p.inverted(), p]);
+    for p in labellings.chain(clusters) {
+        if !p.has_unbound_yarn() && !out.contains(&p) {
+            out.push(p);
+        }
+    }
+    out
 }
 
 /// The value among `values` whose variant of `base` (`set` applied) has the lowest `loss`, with
@@ -656,34 +665,52 @@ fn best_variant<T: Clone>(
     best
 }
 
-/// A common yarn radius from a 0.5-unit grid over Table 1's range, by the pattern loss (own colour
-/// estimate): the radii set the gaps, which the back light makes the brightest, most costly part
-/// of the picture, and the gradient steps move them too slowly from a default.
-/// Returns that and, from it, each family's radius on the same grid with the other held (weft and
-/// warp yarns can differ by half the range, more than the polish's Newton steps cover).
-fn scan_radii(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> [(f32, f32); 2] {
+/// Yarn shape of a candidate pattern by its pattern loss (own colour estimate): a common radius
+/// on a 0.5-unit grid over Table 1's range (the radii set the gaps, which the back light makes the
+/// brightest, most costly part of the picture, and descent moves them too slowly from a default);
+/// then two ply counts: the best `n_p` at that radius, and the best `n_p` with the radius moved
+/// by ±0.5 (few plies make a lobed silhouette that needs another radius); then from each, the
+/// families' radii moved by up to ±1 in turn (weft and warp can differ by half the range).
+/// Returns the four variants, duplicates removed: the scans' loss, at the default appearance,
+/// does not rank them reliably; the caller's descent does.
+fn scan_shape(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<ClothParams> {
     let (lo, hi) = crate::params::RADIUS_RANGE;
-    let grid = || (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
+    let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
     let loss = |e: &Evaluator, cl: &mut ClothParams| pattern_loss(e, cl, c);
     let mut cl = cloth.clone();
-    if let Some((_, r)) = best_variant(ev, &cl, grid(), |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
+    if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
     }
-    let common = (cl.r_e, cl.r_a);
-    if let Some((_, r)) = best_variant(ev, &cl, grid(), |cl, r| cl.r_e = r, loss, stop) {
-        cl.r_e = r;
+    let r0 = cl.r_e;
+    let mut at_common = cl.clone();
+    if let Some((_, n)) = best_variant(ev, &cl, NP_RANGE.0..=NP_RANGE.1, |cl, n| cl.n_p = n, loss, stop) {
+        at_common.n_p = n;
     }
-    if let Some((_, r)) = best_variant(ev, &cl, grid(), |cl, r| cl.r_a = r, loss, stop) {
-        cl.r_a = r;
+    let shapes = (NP_RANGE.0..=NP_RANGE.1)
+        .flat_map(|n| [r0 - 0.5, r0, r0 + 0.5].into_iter().filter(|r| (lo..=hi).contains(r)).map(move |r| (n, r)));
+    let set = |cl: &mut ClothParams, (n, r): (u32, f32)| (cl.n_p, cl.r_e, cl.r_a) = (n, r, r);
+    let mut joint = cl.clone();
+    if let Some((_, (n, r))) = best_variant(ev, &cl, shapes, set, loss, stop) {
+        (joint.n_p, joint.r_e, joint.r_a) = (n, r, r);
     }
-    [common, (cl.r_e, cl.r_a)]
-}
-
-/// The `n_p` in Table 1's range with the lowest pattern loss (own colour estimate).
-fn scan_plies(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> u32 {
-    let set = |cl: &mut ClothParams, n: u32| cl.n_p = n;
-    best_variant(ev, cloth, NP_RANGE.0..=NP_RANGE.1, set, |e, cl| pattern_loss(e, cl, c), stop)
-        .map_or(cloth.n_p, |b| b.1)
+    let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
+    let per_family = |base: &ClothParams| {
+        let mut cl = base.clone();
+        if let Some((_, r)) = best_variant(ev, &cl, near(cl.r_e), |cl, r| cl.r_e = r, loss, stop) {
+            cl.r_e = r;
+        }
+        if let Some((_, r)) = best_variant(ev, &cl, near(cl.r_a), |cl, r| cl.r_a = r, loss, stop) {
+            cl.r_a = r;
+        }
+        cl
+    };
+    let mut out: Vec<ClothParams> = Vec::new();
+    for v in [per_family(&at_common), at_common, per_family(&joint), joint] {
+        if !out.iter().any(|u| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
+            out.push(v);
+        }
+    }
+    out
 }
 
 /// The cloth seen with weft and warp roles exchanged where it matters for the picture: every cell
@@ -989,18 +1016,11 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             let mut cand = cloth.clone();
             cand.pattern = p;
             // Radii and plies per yarn change every yarn's silhouette and shading, enough to hide
-            // the pattern's signal: each candidate gets its own.
-            // The scans' loss (default appearance but the colours, 2 spp) can prefer per-family
-            // radii that the converged appearance does not: both go through a short descent of the
-            // appearance, the better one is polished.
+            // the pattern's signal: each candidate gets its own. The scans' loss (default appearance but the colours, 2 spp) does not rank the shape
+            // variants reliably: each goes through a short descent of the appearance, the best
+            // one is polished.
             let mut best_radii: Option<(f32, ClothParams)> = None;
-            for (k, r) in scan_radii(&pre_ev, &cand, cp, stop).into_iter().enumerate() {
-                if k == 1 && best_radii.as_ref().is_some_and(|b| (b.1.r_e, b.1.r_a) == r) {
-                    continue;
-                }
-                let mut v = cand.clone();
-                (v.r_e, v.r_a) = r;
-                v.n_p = scan_plies(&pre_ev, &v, cp, stop);
+            for mut v in scan_shape(&pre_ev, &cand, cp, stop) {
                 estimate_colours(&ev, &mut v, c);
                 let l = refine::polish(&ev, &mut v, 0, opts.warmup, stop);
                 if best_radii.as_ref().is_none_or(|b| l < b.0) {
@@ -1086,7 +1106,9 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         cloth: best_cloth.clone(),
     });
     if opts.fine_spp > 0 && !stopped {
-        // The winner, polished to convergence at the fit's spp, then at `fine_spp` (another seed).
+        // The winner: appearance restarts, polished to convergence at the fit's spp, then at
+        // `fine_spp` (another seed).
+        refine::appearance_restarts(&ev, &mut best_cloth, RESTARTS, 2 * opts.finish, opts.seed, stop);
         refine::polish(&ev, &mut best_cloth, POLISH_ROUNDS, opts.finish, stop);
         let fine_scene = fit_scene(n_e, n_a, c, opts.fine_spp, opts.seed.wrapping_add(3), &opts.lights);
         let fine = Evaluator::new(fine_scene, tgt.clone(), opts.loss_block);

@@ -242,6 +242,48 @@ pub(super) fn polish(
     loss
 }
 
+/// Appearance scalars that shape the lobes and the self-shadowing rather than set a colour
+/// (`m_r`, `α^S`, `α^S_y`, `η^S`, `η^S_y`, `A^S`, `A^B`, `G_p`, `G_f`): the loss has separate basins
+/// in them (a sharp specular lobe is not reached by descent from a rough one).
+const SHAPE_SCALARS: [usize; 9] = [0, 10, 11, 12, 13, 14, 15, 28, 29];
+
+/// Multi-start Levenberg–Marquardt of the appearance at fixed geometry: the cloth's own
+/// appearance, then `n` starts with the [`SHAPE_SCALARS`] drawn uniformly in their ranges (the
+/// colours kept), `iters` iterations each; the lowest loss wins. One trace, no re-trace. Leaves
+/// the winner in `cloth` and returns its loss.
+pub(super) fn appearance_restarts(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    n: usize,
+    iters: usize,
+    seed: u64,
+    stop: &AtomicBool,
+) -> f32 {
+    use rand::{RngExt, SeedableRng};
+    let cache = ev.record(cloth);
+    let start = cloth.appearance.to_vec();
+    let mut best = (lm_appearance(ev, &cache, cloth, iters, stop), cloth.appearance.clone());
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    for _ in 0..n {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        let mut x = start;
+        for k in SHAPE_SCALARS {
+            let r = &APPEARANCE_RANGES[k];
+            x[k] = r.min + rng.random::<f32>() * (r.max - r.min);
+        }
+        let mut c = cloth.clone();
+        c.appearance = Appearance::from_slice(&x);
+        let l = lm_appearance(ev, &cache, &mut c, iters, stop);
+        if l < best.0 {
+            best = (l, c.appearance);
+        }
+    }
+    cloth.appearance = best.1;
+    best.0
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -251,7 +251,8 @@ pub fn cell_means(img: &Image, n_e: usize, n_a: usize, c: u32, margin: f32) -> V
 /// Two-means clustering of the cells' inner mean colours, started from the two most different
 /// cells: where the two yarn families differ in colour, the clusters are the cells where weft
 /// resp. warp lies on top (paper §5.1's colour cue). Which cluster is which is not decided here:
-/// the caller tries the labelling and its inverse. `None` when every cell lands in one cluster.
+/// the caller tries the labelling and its inverse. A row or column left in one cluster has its
+/// least certain cell flipped. `None` when every cell lands in one cluster.
 pub fn colour_clusters(img: &Image, n_e: usize, n_a: usize, c: u32) -> Option<WeavePattern> {
     let x = cell_means(img, n_e, n_a, c, 0.2);
     let d2 = |a: &[f32; 3], b: &[f32; 3]| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>();
@@ -285,6 +286,69 @@ pub fn colour_clusters(img: &Image, n_e: usize, n_a: usize, c: u32) -> Option<We
             break;
         }
     }
+    let margin: Vec<f32> = x.iter().map(|p| (d2(p, &mu[0]) - d2(p, &mu[1])).abs()).collect();
+    repair_floating(&mut lab, n_e, n_a, &margin);
+    let rows: Vec<Vec<bool>> = (0..n_e).map(|i| lab[i * n_a..(i + 1) * n_a].to_vec()).collect();
+    WeavePattern::from_rows_unreduced(&rows).ok()
+}
+
+/// A labelling (row-major by weft `i`) with a row or column all one value would have a yarn
+/// floating over the whole repeat (no weave): flip the least certain cell (smallest `margin`) among
+/// those whose flip leaves fewer such lines, until none is left or no flip helps.
+fn repair_floating(lab: &mut [bool], n_e: usize, n_a: usize, margin: &[f32]) {
+    let uniform_lines = |lab: &[bool]| {
+        let rows = (0..n_e).filter(|&i| (0..n_a).all(|j| lab[i * n_a + j] == lab[i * n_a])).count();
+        let cols = (0..n_a).filter(|&j| (0..n_e).all(|i| lab[i * n_a + j] == lab[j])).count();
+        rows + cols
+    };
+    while uniform_lines(lab) > 0 {
+        let now = uniform_lines(lab);
+        let flip = (0..lab.len())
+            .filter(|&k| {
+                let mut t = lab.to_vec();
+                t[k] = !t[k];
+                uniform_lines(&t) < now
+            })
+            .min_by(|&a, &b| margin[a].total_cmp(&margin[b]));
+        match flip {
+            Some(k) => lab[k] = !lab[k],
+            None => break,
+        }
+    }
+}
+
+/// The pattern read from the yarns' directions: in each cell (inner part, a fifth of the cell
+/// ignored at each edge), weft lies on top where the luminance (sRGB) varies more across rows than
+/// across columns (a horizontal yarn's edges, shading and gaps run along x). Unlike the colour
+/// clusters it says which family is on top, and it works when the two families' colours are close.
+/// Floating yarns are repaired as in [`colour_clusters`]. `None` for cells under 5 px.
+pub fn orientation_labelling(img: &Image, n_e: usize, n_a: usize, c: u32) -> Option<WeavePattern> {
+    if c < 5 {
+        return None;
+    }
+    let lum = |x: u32, y: u32| {
+        let p = img.get(x.min(img.width - 1), y.min(img.height - 1));
+        crate::image_io::linear_to_srgb((p[0] + p[1] + p[2]) / 3.0)
+    };
+    let m = c / 5;
+    let mut lab = vec![false; n_e * n_a];
+    let mut margin = vec![0.0f32; n_e * n_a];
+    for i in 0..n_e {
+        for j in 0..n_a {
+            let (x0, y0, x1, y1) = cell_rect(n_e, i, j, c);
+            let (mut sx, mut sy) = (0.0f32, 0.0f32);
+            for y in y0 + m..y1 - m {
+                for x in x0 + m..x1 - m {
+                    let v = lum(x, y);
+                    sx += (lum(x + 1, y) - v).powi(2);
+                    sy += (lum(x, y + 1) - v).powi(2);
+                }
+            }
+            lab[i * n_a + j] = sy > sx;
+            margin[i * n_a + j] = (sy - sx).abs() / (sy + sx).max(1e-12);
+        }
+    }
+    repair_floating(&mut lab, n_e, n_a, &margin);
     let rows: Vec<Vec<bool>> = (0..n_e).map(|i| lab[i * n_a..(i + 1) * n_a].to_vec()).collect();
     WeavePattern::from_rows_unreduced(&rows).ok()
 }
@@ -317,6 +381,26 @@ mod tests {
         let p = WeavePattern::parse("10010/00110/01011/11110/11000").expect("pattern");
         let img = painted(&p, 12, [0.7, 0.2, 0.1], [0.2, 0.3, 0.6]);
         let q = colour_clusters(&img, 5, 5, 12).expect("two clusters");
+        assert!(q == p || q == p.inverted(), "{q} vs {p}");
+    }
+
+    #[test]
+    fn a_cluster_labelling_with_a_floating_yarn_is_repaired_at_its_least_certain_cell() {
+        let p = WeavePattern::parse("110/011/101").expect("pattern");
+        let (a, b) = ([0.7, 0.2, 0.1], [0.2, 0.3, 0.6]);
+        let mut img = painted(&p, 12, a, b);
+        // The one `b` cell of weft 0 is painted just on `a`'s side of the midpoint: plain 2-means
+        // puts it with the other cells of its row, which leaves weft 0 floating over the repeat.
+        let j = (0..3).find(|&j| !p.get(0, j)).expect("a 0 cell in row 0");
+        let (x0, y0, x1, y1) = cell_rect(3, 0, j, 12);
+        let mid: [f32; 3] = std::array::from_fn(|k| 0.53 * a[k] + 0.47 * b[k]);
+        for y in y0 + 2..y1 - 2 {
+            for x in x0 + 2..x1 - 2 {
+                img.data[(y * img.width + x) as usize] = mid;
+            }
+        }
+        let q = colour_clusters(&img, 3, 3, 12).expect("two clusters");
+        assert!(!q.has_unbound_yarn(), "{q}");
         assert!(q == p || q == p.inverted(), "{q} vs {p}");
     }
 
