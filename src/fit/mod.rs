@@ -478,11 +478,7 @@ fn greedy_sweeps(
                 if stop.load(Ordering::Relaxed) {
                     return cur;
                 }
-                let mut cand = cloth.clone();
-                cand.pattern = cloth.pattern.toggled(i, j);
-                if cand.pattern.has_unbound_yarn() && !cloth.pattern.has_unbound_yarn() {
-                    continue;
-                }
+                let Some(mut cand) = toggled_cell(cloth, i, j) else { continue };
                 let l = loss(ev, &mut cand);
                 if l < cur {
                     *cloth = cand;
@@ -496,6 +492,14 @@ fn greedy_sweeps(
         }
     }
     cur
+}
+
+/// The cloth with cell `(i, j)` toggled; `None` when that leaves a yarn floating over the whole
+/// repeat (not a weave) and the cloth had none.
+fn toggled_cell(cloth: &ClothParams, i: usize, j: usize) -> Option<ClothParams> {
+    let mut cand = cloth.clone();
+    cand.pattern = cloth.pattern.toggled(i, j);
+    (!cand.pattern.has_unbound_yarn() || cloth.pattern.has_unbound_yarn()).then_some(cand)
 }
 
 /// Loss of a cloth as it stands (trace, shade with its appearance).
@@ -1425,11 +1429,7 @@ fn toggle_contest(
             if stop.load(Ordering::Relaxed) {
                 return None;
             }
-            let mut cand = cloth.clone();
-            cand.pattern = cloth.pattern.toggled(i, j);
-            if cand.pattern.has_unbound_yarn() && !cloth.pattern.has_unbound_yarn() {
-                continue;
-            }
+            let Some(mut cand) = toggled_cell(cloth, i, j) else { continue };
             scored.push((state_loss(quick, &mut cand), cand));
         }
     }
