@@ -96,7 +96,8 @@ pub struct FitOptions {
     pub loss_block: u32,
     /// Maximum greedy sweeps of the pattern pre-estimation.
     pub max_sweeps: usize,
-    /// Patterns of the candidate ranking that get a warm-up.
+    /// Best patterns of the coarse candidate ranking that get a warm-up (the best named weave and
+    /// the labellings read from the picture always get one too).
     pub shortlist: usize,
     /// Levenberg–Marquardt iterations per round of each warm-up (pre-estimation, fixed pattern;
     /// see `refine::polish`).
