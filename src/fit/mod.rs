@@ -686,17 +686,25 @@ fn scan_shape(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) ->
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
     }
+    // One pass over (n_p, radius) serves both the best n_p at the common radius and the best pair.
     let r0 = cl.r_e;
-    let mut at_common = cl.clone();
-    if let Some((_, n)) = best_variant(ev, &cl, NP_RANGE.0..=NP_RANGE.1, |cl, n| cl.n_p = n, loss, stop) {
-        at_common.n_p = n;
-    }
-    let shapes = (NP_RANGE.0..=NP_RANGE.1)
-        .flat_map(|n| [r0 - 0.5, r0, r0 + 0.5].into_iter().filter(|r| (lo..=hi).contains(r)).map(move |r| (n, r)));
-    let set = |cl: &mut ClothParams, (n, r): (u32, f32)| (cl.n_p, cl.r_e, cl.r_a) = (n, r, r);
-    let mut joint = cl.clone();
-    if let Some((_, (n, r))) = best_variant(ev, &cl, shapes, set, loss, stop) {
-        (joint.n_p, joint.r_e, joint.r_a) = (n, r, r);
+    let (mut at_common, mut joint) = (cl.clone(), cl.clone());
+    let (mut best_common, mut best_joint): (Option<f32>, Option<f32>) = (None, None);
+    for n in NP_RANGE.0..=NP_RANGE.1 {
+        for r in [r0 - 0.5, r0, r0 + 0.5].into_iter().filter(|r| (lo..=hi).contains(r)) {
+            if stop.load(Ordering::Relaxed) {
+                break;
+            }
+            let mut cand = cl.clone();
+            (cand.n_p, cand.r_e, cand.r_a) = (n, r, r);
+            let l = loss(ev, &mut cand);
+            if r == r0 && best_common.is_none_or(|b| l < b) {
+                (best_common, at_common.n_p) = (Some(l), n);
+            }
+            if best_joint.is_none_or(|b| l < b) {
+                (best_joint, joint.n_p, joint.r_e, joint.r_a) = (Some(l), n, r, r);
+            }
+        }
     }
     let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
     let per_family = |base: &ClothParams| {
@@ -780,7 +788,8 @@ fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u3
 }
 
 /// Full colour pre-estimation: body colours, then the specular colour from the top-10% pixels.
-fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) {
+/// Returns the recorded paths of `cloth` (its geometry is unchanged), for a descent that follows.
+fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) -> PathCache {
     let cache = ev.record(cloth);
     fit_colours(ev, cloth, &cache, c);
     let (lo, hi) = (0.2f32, 0.8f32);
@@ -799,6 +808,7 @@ fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) {
         cloth.appearance.r_s[k] = v.clamp(0.0, 1.0);
     }
     fit_colours(ev, cloth, &cache, c);
+    cache
 }
 
 /// Apply a pre-estimator prediction (everything but the pattern and the analytic colours).
@@ -1026,8 +1036,8 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
             // one is polished.
             let mut best_radii: Option<(f32, ClothParams)> = None;
             for mut v in scan_shape(&pre_ev, &cand, cp, stop) {
-                estimate_colours(&ev, &mut v, c);
-                let l = refine::polish(&ev, &mut v, 0, opts.warmup, stop);
+                let cache = estimate_colours(&ev, &mut v, c);
+                let l = refine::lm_appearance(&ev, &cache, &mut v, opts.warmup, stop);
                 if best_radii.as_ref().is_none_or(|b| l < b.0) {
                     best_radii = Some((l, v));
                 }

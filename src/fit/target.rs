@@ -287,22 +287,21 @@ pub fn colour_clusters(img: &Image, n_e: usize, n_a: usize, c: u32) -> Option<We
         }
     }
     let margin: Vec<f32> = x.iter().map(|p| (d2(p, &mu[0]) - d2(p, &mu[1])).abs()).collect();
-    repair_floating(&mut lab, n_e, n_a, &margin);
-    let rows: Vec<Vec<bool>> = (0..n_e).map(|i| lab[i * n_a..(i + 1) * n_a].to_vec()).collect();
-    WeavePattern::from_rows_unreduced(&rows).ok()
+    woven_labelling(lab, n_e, n_a, &margin)
 }
 
-/// A labelling (row-major by weft `i`) with a row or column all one value would have a yarn
-/// floating over the whole repeat (no weave): flip the least certain cell (smallest `margin`) among
-/// those whose flip leaves fewer such lines, until none is left or no flip helps.
-fn repair_floating(lab: &mut [bool], n_e: usize, n_a: usize, margin: &[f32]) {
+/// The pattern of a cell labelling (row-major by weft `i`, weft on top where true). A row or
+/// column all one value would have a yarn floating over the whole repeat (no weave): the least
+/// certain cell (smallest `margin`) among those whose flip leaves fewer such lines is flipped,
+/// until none is left or no flip helps.
+fn woven_labelling(mut lab: Vec<bool>, n_e: usize, n_a: usize, margin: &[f32]) -> Option<WeavePattern> {
     let uniform_lines = |lab: &[bool]| {
         let rows = (0..n_e).filter(|&i| (0..n_a).all(|j| lab[i * n_a + j] == lab[i * n_a])).count();
         let cols = (0..n_a).filter(|&j| (0..n_e).all(|i| lab[i * n_a + j] == lab[j])).count();
         rows + cols
     };
-    while uniform_lines(lab) > 0 {
-        let now = uniform_lines(lab);
+    while uniform_lines(&lab) > 0 {
+        let now = uniform_lines(&lab);
         let flip = (0..lab.len())
             .filter(|&k| {
                 let mut t = lab.to_vec();
@@ -315,6 +314,8 @@ fn repair_floating(lab: &mut [bool], n_e: usize, n_a: usize, margin: &[f32]) {
             None => break,
         }
     }
+    let rows: Vec<Vec<bool>> = (0..n_e).map(|i| lab[i * n_a..(i + 1) * n_a].to_vec()).collect();
+    WeavePattern::from_rows_unreduced(&rows).ok()
 }
 
 /// The pattern read from the yarns' directions: in each cell (inner part, a fifth of the cell
@@ -348,9 +349,7 @@ pub fn orientation_labelling(img: &Image, n_e: usize, n_a: usize, c: u32) -> Opt
             margin[i * n_a + j] = (sy - sx).abs() / (sy + sx).max(1e-12);
         }
     }
-    repair_floating(&mut lab, n_e, n_a, &margin);
-    let rows: Vec<Vec<bool>> = (0..n_e).map(|i| lab[i * n_a..(i + 1) * n_a].to_vec()).collect();
-    WeavePattern::from_rows_unreduced(&rows).ok()
+    woven_labelling(lab, n_e, n_a, &margin)
 }
 
 #[cfg(test)]
