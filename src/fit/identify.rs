@@ -1,7 +1,8 @@
 //! Which appearance parameters a picture determines: the Cramér–Rao bound of the 30 BYSDF scalars
 //! at a cloth, from the forward model's exact derivatives.
 //!
-//! With the fit's loss (box-filtered linear RGB, Gaussian pixel noise of variance σ²) the Fisher
+//! With the fit's box-filtered pixels in linear RGB (before the loss's sRGB encoding) and Gaussian
+//! noise of variance σ² on them, the Fisher
 //! information is `F = JᵀJ/σ²`, `J` the Jacobian of the filtered pixels with respect to the
 //! parameters in units of their Table-1 range. The bound `sd_k = √(F⁻¹)_kk` is the smallest
 //! standard deviation any unbiased estimate of parameter `k` can have from this picture; it is

@@ -1,20 +1,21 @@
 //! `woven fit`: recover pattern, geometry and appearance from one image (pipeline.md §4–5).
 //!
-//! Stages: optional preparation (`prep`) → pattern pre-estimation: whole-pattern candidates (both
-//! labellings of the cells' colour clusters, every named weave in every shift) ranked on the
-//! coarse colour layout → network pre-estimation (when a model is given) → per shortlisted
-//! candidate a radius and ply-count scan, the colour pre-estimate (converted to `R^B` through the
-//! renderer's response) and a fixed-pattern polish (Levenberg–Marquardt on the appearance, Newton
-//! steps of the radii; `refine::polish`) → a greedy cell sweep of the best → joint optimization:
-//! Adam on the 30 appearance scalars with exact gradients (`PathCache`), the radii by
-//! simultaneous-perturbation differences every few iterations, and simulated annealing of the
-//! pattern cells, `n_p` and `n_f` in the same loop (Metropolis, `T_k = 100·0.98^k`), keeping the
-//! best state → finish: the annealed best against its rivals (warmed-up candidates, re-ranked
-//! candidate, n_p/n_f scan, inverted twin), each polished; a greedy cell pass; the winner polished
-//! at the fit's spp and then at `fine_spp`.
+//! Stages: optional preparation (`prep`) → pattern pre-estimation: whole-pattern candidates (the
+//! cells read from the picture: yarn directions and both labellings of the colour clusters; every
+//! named weave in every shift) ranked on the coarse colour layout; the best, the best named weave
+//! and the labellings read from the picture go on → network pre-estimation (when a model is
+//! given) → per candidate a radius and ply-count scan, the colour pre-estimate (converted to `R^B`
+//! through the renderer's response) and a fixed-pattern polish (Levenberg–Marquardt on the
+//! appearance, Newton steps of the radii; `refine::polish`) → a greedy cell sweep of the best →
+//! joint optimization: Adam on the 30 appearance scalars with exact gradients (`PathCache`), the
+//! radii by simultaneous-perturbation differences every few iterations, and simulated annealing of
+//! the pattern cells, `n_p` and `n_f` in the same loop (Metropolis, `T_k = 100·0.98^k`), keeping
+//! the best state → finish: the annealed best against its rivals (warmed-up candidates, re-ranked
+//! candidate, n_p/n_f scan, inverted twin), each with an appearance descent; single-cell contests;
+//! appearance restarts of the winner, polished at the fit's spp and then at `fine_spp`.
 //!
-//! **Loss unit.** The gradient loss is the linear-RGB MSE plus the barrier (λ = 0.01 per scalar, raw
-//! units). The annealing energy is `E = K·MSE`; `K` is calibrated per fit from a few proposals
+//! **Loss unit.** The gradient loss is the MSE of sRGB-encoded 2×2 block means (see
+//! `Evaluator`) plus the barrier (λ = 0.01 per scalar, raw units). The annealing energy is `E = K·MSE`; `K` is calibrated per fit from a few proposals
 //! drawn at the start of the joint loop so that the median uphill proposal costs `T0·ln 2`, i.e.
 //! half of the early uphill proposals are accepted (pipeline §5); `--energy-scale` fixes it.
 
@@ -209,7 +210,7 @@ pub struct IterLog {
     pub stage: &'static str,
     /// Temperature.
     pub temperature: f64,
-    /// MSE of the current state (linear RGB).
+    /// MSE of the current state (sRGB-encoded block means, see `Evaluator`).
     pub mse: f32,
     /// MSE + barrier.
     pub loss: f32,
@@ -332,7 +333,7 @@ pub fn check_input(img: &Image) -> Result<()> {
 /// averaged over `b × b` pixel blocks (which divides the Monte Carlo variance by `b²` while keeping
 /// the cell structure; cells are ≥ 8 px), then sRGB-encoded: in linear units the white gaps
 /// outweigh everything else, and which yarn lies on top of a cell between two dark yarns changed
-/// the loss less than the render noise did (a basket weave lost to a wrong pattern with 15 dB
+/// the loss less than the render noise did (a basket weave lost to a wrong pattern with 16 dB
 /// lower PSNR); sRGB is also the space the reported PSNR is measured in.
 struct Evaluator {
     scene: Scene,
@@ -584,15 +585,15 @@ pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
     out
 }
 
-/// Candidate ranking of the pattern pre-estimation: the cloth's own pattern, the two labellings
-/// of the cells' colour clusters (weft-coloured cells on top, or the inverse) and every named
-/// weave that fits the grid, in every shift, each scored with its own colour estimate. Returns
-/// the `keep` best patterns, best first.
+/// Candidate ranking of the pattern pre-estimation: the cloth's own pattern, the labellings read
+/// from the picture ([`picture_labellings`]) and every named weave that fits the grid, in every
+/// shift, each scored with its own colour estimate. Returns the `keep` best patterns, best first,
+/// then the best named weave and the labellings read from the picture if not among them.
 fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, stop: &AtomicBool) -> Vec<WeavePattern> {
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
-    let clusters = cluster_candidates(ev, n_e, n_a, c);
+    let read = picture_labellings(ev, n_e, n_a, c);
     let templates = template_candidates(n_e, n_a);
-    let cands = [cloth.pattern.clone()].into_iter().chain(clusters.iter().cloned()).chain(templates.iter().cloned());
+    let cands = [cloth.pattern.clone()].into_iter().chain(read.iter().cloned()).chain(templates.iter().cloned());
     let mut scored: Vec<(f32, WeavePattern)> = Vec::new();
     for p in cands {
         if stop.load(Ordering::Relaxed) {
@@ -609,12 +610,12 @@ fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, sto
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
     // The best named weave always goes on to the warm-up: where the two colours are close, a
     // noisy colour clustering can out-score the true weave on the coarse layout.
-    // Likewise both labellings of the colour clusters: on a random weave one of them is usually
+    // Likewise every labelling read from the picture: on a random weave one of them is usually
     // within a few cells of the truth, while the coarse layout at the default appearance can rank
-    // a shifted satin or twill above it, and cannot tell the two labellings apart.
+    // a shifted satin or twill above it, and cannot tell a colour labelling from its inverse.
     let best_template = scored.iter().find(|(_, p)| templates.contains(p)).map(|(_, p)| p.clone());
     let mut out: Vec<WeavePattern> = scored.into_iter().take(keep.max(1)).map(|(_, p)| p).collect();
-    for t in best_template.into_iter().chain(clusters) {
+    for t in best_template.into_iter().chain(read) {
         if !out.contains(&t) {
             out.push(t);
         }
@@ -622,10 +623,10 @@ fn rank_candidates(ev: &Evaluator, cloth: &ClothParams, c: u32, keep: usize, sto
     out
 }
 
-/// Whole-pattern candidates for an `n_e × n_a` grid: both labellings of the target's colour
-/// clusters, then every named weave that fits (see [`template_candidates`]).
+/// Whole-pattern candidates for an `n_e × n_a` grid: the labellings read from the target (see
+/// [`picture_labellings`]), then every named weave that fits (see [`template_candidates`]).
 fn candidate_patterns(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
-    let mut cands = cluster_candidates(ev, n_e, n_a, c);
+    let mut cands = picture_labellings(ev, n_e, n_a, c);
     cands.extend(template_candidates(n_e, n_a));
     cands
 }
@@ -633,7 +634,7 @@ fn candidate_patterns(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<Wea
 /// The cells read from the target: the yarn-direction labelling
 /// ([`target::orientation_labelling`]) and both labellings of the colour clusters
 /// ([`target::colour_clusters`]), those that leave no yarn floating.
-fn cluster_candidates(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
+fn picture_labellings(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
     let mut out: Vec<WeavePattern> = Vec::new();
     let labellings = target::orientation_labelling(&ev.target, n_e, n_a, c).into_iter();
     let clusters = target::colour_clusters(&ev.target, n_e, n_a, c).into_iter().flat_map(|p| [p.inverted(), p]);
@@ -1023,17 +1024,17 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
                 Err(e) => warnings.push(format!("pre-estimator failed on the input ({e}); using defaults")),
             }
         }
-        // Warm-up: every shortlisted pattern gets its colour estimate and a short gradient descent
-        // at the fit's resolution; the best goes on. Candidates are compared only once their
+        // Warm-up: every shortlisted pattern gets its shape scans, colour estimate and a polish at
+        // the fit's resolution; the best goes on. Candidates are compared only once their
         // appearance fits: with the grey default, the loss is too flat in the pattern to rank them.
         let mut warm: Vec<(f32, ClothParams)> = Vec::new();
         for p in shortlist {
             let mut cand = cloth.clone();
             cand.pattern = p;
             // Radii and plies per yarn change every yarn's silhouette and shading, enough to hide
-            // the pattern's signal: each candidate gets its own. The scans' loss (default appearance but the colours, 2 spp) does not rank the shape
-            // variants reliably: each goes through a short descent of the appearance, the best
-            // one is polished.
+            // the pattern's signal: each candidate gets its own. The scans' loss (default
+            // appearance but the colours, 2 spp) does not rank the shape variants reliably: each
+            // goes through a short descent of the appearance, the best one is polished.
             let mut best_radii: Option<(f32, ClothParams)> = None;
             for mut v in scan_shape(&pre_ev, &cand, cp, stop) {
                 let cache = estimate_colours(&ev, &mut v, c);
@@ -1073,8 +1074,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     let initial = cloth.clone();
     let t_pre = t_start.elapsed().as_secs_f64() - t_prep;
 
-    // 3. Joint optimization, from each start (see `opts.starts`), then its finish; the lowest
-    // loss wins.
+    // 3. Joint optimization from each start (see `opts.starts`), then one finish over all runs.
     let per = if starts.len() > 1 { opts.iterations / starts.len() } else { opts.iterations };
     let pb = if opts.progress {
         let pb = indicatif::ProgressBar::new((per * starts.len()) as u64);
@@ -1343,10 +1343,10 @@ fn joint_loop(
 }
 
 /// Finish of the joint runs (`best`, the lowest annealed state; `others`, the other runs' best
-/// states, the runs' starts and the warmed-up candidates): rivals that the annealer's small steps could not reach get the
-/// same short polish as the best, with its converged appearance (a state found early was scored
-/// with a less converged appearance than one found late), the lowest loss wins; then a greedy pass
-/// over the cells and, if it changed the pattern, another polish. Returns the loss and the cloth.
+/// states, the runs' starts and the warmed-up candidates): rivals that the annealer's small steps
+/// could not reach get the same appearance descent as the best (a state found early was scored
+/// with a less converged appearance than one found late), the lowest loss wins; then up to
+/// [`TOGGLE_ROUNDS`] single-cell contests ([`toggle_contest`]). Returns the loss and the cloth.
 fn finish(
     ev: &Evaluator,
     best: &ClothParams,

@@ -131,7 +131,7 @@ fn yarn_count(luminance: &[f32], edges: &[f32]) -> Option<usize> {
 }
 
 /// Yarn grid `(n_e, n_a)` of an image holding exactly one repeat, from the luminance and edge
-/// profiles along each axis (see [`yarn_count`]); `None` when an axis has no plausible count.
+/// profiles along each axis (see `yarn_count`); `None` when an axis has no plausible count.
 pub fn comb_grid(img: &Image) -> Option<(usize, usize)> {
     let (w, h) = (img.width as usize, img.height as usize);
     let lum: Vec<f32> = img.data.iter().map(|p| (p[0] + p[1] + p[2]).clamp(0.0, 3.0) / 3.0).collect();
