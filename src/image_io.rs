@@ -264,4 +264,32 @@ impl Image {
         }
         out
     }
+    /// Stack images vertically (width of the widest), separated by `gap` black rows.
+    pub fn vstack(images: &[&Image], gap: u32) -> Image {
+        let w = images.iter().map(|i| i.width).max().unwrap_or(1);
+        let h: u32 = images.iter().map(|i| i.height).sum::<u32>() + gap * (images.len() as u32).saturating_sub(1);
+        let mut data = Vec::with_capacity((w * h) as usize);
+        for (k, img) in images.iter().enumerate() {
+            for y in 0..img.height {
+                for x in 0..w {
+                    data.push(if x < img.width { img.get(x, y) } else { [0.0; 3] });
+                }
+            }
+            if k + 1 < images.len() {
+                data.extend(std::iter::repeat_n([0.0; 3], (gap * w) as usize));
+            }
+        }
+        Image::new(w, h, data)
+    }
+
+    /// Cut a `w`×`h` window at `(x, y)` out of the image (clamped to its bounds, at least 1×1).
+    pub fn crop(&self, x: u32, y: u32, w: u32, h: u32) -> Image {
+        let w = w.min(self.width.saturating_sub(x)).max(1);
+        let h = h.min(self.height.saturating_sub(y)).max(1);
+        let data = (0..h)
+            .flat_map(|j| (0..w).map(move |i| (i, j)))
+            .map(|(i, j)| self.get((x + i).min(self.width - 1), (y + j).min(self.height - 1)))
+            .collect();
+        Image::new(w, h, data)
+    }
 }

@@ -10,7 +10,6 @@
 //! commands.
 
 pub mod bench;
-pub mod cli;
 pub mod datagen;
 pub mod export;
 pub mod fit;
@@ -24,6 +23,7 @@ pub mod pattern;
 pub mod plot;
 pub mod pre;
 pub mod prep;
+pub mod progress;
 pub mod render;
 pub mod scene;
 pub mod shading;

@@ -3,7 +3,7 @@
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
-use woven::cli;
+mod cli;
 
 #[derive(Parser)]
 #[command(

@@ -945,7 +945,7 @@ fn fit_inner(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         let p = crate::prep::prepare(&input.to_rgb32f(), &crate::prep::PrepOptions::default())
             .context("preparing the input (use --no-prep for a clean one-repeat crop)")?;
         let reg = Image::from_rgb32f(&p.regularized);
-        let crop = crate::cli::crop(&reg, p.crop.x, p.crop.y, p.crop.w, p.crop.h);
+        let crop = reg.crop(p.crop.x, p.crop.y, p.crop.w, p.crop.h);
         let g = (p.n_e, p.n_a);
         (crop, Some(p), Some(g))
     } else {

@@ -1,13 +1,16 @@
-//! Implementations of the CLI subcommands (kept in the library so they are testable).
+//! The `woven` command line (binary only): argument types, progress bars, Ctrl-C and printing over
+//! the library, which has no CLI dependency.
 
-use crate::image_io::Image;
-use crate::params::{ClothParams, ParamFile};
-use crate::pattern::WeavePattern;
-use crate::render::{render, RenderOptions};
-use crate::scene::{LightRig, Projection, Scene};
+pub mod progress;
+
 use anyhow::{anyhow, bail, Context, Result};
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::Path;
+use woven::image_io::Image;
+use woven::params::{ClothParams, ParamFile};
+use woven::pattern::WeavePattern;
+use woven::progress::Progress;
+use woven::render::{render, RenderOptions};
+use woven::scene::{LightRig, Projection, Scene};
 
 /// `woven params`: a complete parameter file for a pattern spec.
 pub fn params_json(spec: &str, rotate: u32, lights: &str) -> Result<String> {
@@ -130,11 +133,11 @@ pub fn example_cloth(name: &str) -> Result<ClothParams> {
 /// `woven demo`: render the example scenes and a contact sheet.
 pub fn demo(out: &Path, size: u32, spp: u32) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let pb = ProgressBar::new(EXAMPLES.len() as u64);
-    pb.set_style(ProgressStyle::with_template("{bar:30} {pos}/{len} {elapsed_precise} {msg}")?);
+    let pb = progress::IndicatifProgress::new(true);
+    pb.begin("examples", EXAMPLES.len() as u64);
     let mut imgs = Vec::new();
     for (stem, pat, rig) in EXAMPLES {
-        pb.set_message(stem.to_string());
+        pb.message(stem);
         let cloth = example_cloth(pat)?;
         let scene = Scene {
             width: size,
@@ -146,49 +149,31 @@ pub fn demo(out: &Path, size: u32, spp: u32) -> Result<()> {
         let img = render(&cloth, &scene, &RenderOptions::default());
         img.save_png(&out.join(format!("{stem}.png")))?;
         imgs.push(img);
-        pb.inc(1);
+        pb.advance(1);
     }
-    pb.finish_with_message("done");
+    pb.finish();
     let rows: Vec<Image> = imgs.chunks(3).map(|c| Image::hstack(&c.iter().collect::<Vec<_>>(), 4)).collect();
-    let sheet = vstack(&rows.iter().collect::<Vec<_>>(), 4);
+    let sheet = Image::vstack(&rows.iter().collect::<Vec<_>>(), 4);
     sheet.save_png(&out.join("examples.png"))?;
     println!("wrote {} renders and examples.png to {}", EXAMPLES.len(), out.display());
     Ok(())
 }
 
-/// Stack images vertically (same width), separated by `gap` black rows.
-pub fn vstack(images: &[&Image], gap: u32) -> Image {
-    let w = images.iter().map(|i| i.width).max().unwrap_or(1);
-    let h: u32 = images.iter().map(|i| i.height).sum::<u32>() + gap * (images.len() as u32).saturating_sub(1);
-    let mut data = Vec::with_capacity((w * h) as usize);
-    for (k, img) in images.iter().enumerate() {
-        for y in 0..img.height {
-            for x in 0..w {
-                data.push(if x < img.width { img.get(x, y) } else { [0.0; 3] });
-            }
-        }
-        if k + 1 < images.len() {
-            data.extend(std::iter::repeat_n([0.0; 3], (gap * w) as usize));
-        }
-    }
-    Image::new(w, h, data)
-}
-
 /// `woven prep`: rectify, regularize, find the yarn grid and minimum pattern; write the images and
 /// `prep.json` into `out`.
-pub fn prep(image: &Path, out: &Path, no_perspective: bool) -> Result<crate::prep::Prepared> {
-    let img = Image::load(image, crate::prep::MIN_SIZE)?;
+pub fn prep(image: &Path, out: &Path, no_perspective: bool) -> Result<woven::prep::Prepared> {
+    let img = Image::load(image, woven::prep::MIN_SIZE)?;
     let t0 = std::time::Instant::now();
-    let opts = crate::prep::PrepOptions { perspective: !no_perspective, ..Default::default() };
-    let p = crate::prep::prepare(&img.to_rgb32f(), &opts).with_context(|| format!("preparing {}", image.display()))?;
+    let opts = woven::prep::PrepOptions { perspective: !no_perspective, ..Default::default() };
+    let p = woven::prep::prepare(&img.to_rgb32f(), &opts).with_context(|| format!("preparing {}", image.display()))?;
     let secs = t0.elapsed().as_secs_f64();
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     Image::from_rgb32f(&p.rectified).save_png(&out.join("rectified.png"))?;
     let reg = Image::from_rgb32f(&p.regularized);
     reg.save_png(&out.join("regularized.png"))?;
     Image::from_rgb32f(&p.grid_overlay()).save_png(&out.join("grid.png"))?;
-    crop(&reg, p.crop.x, p.crop.y, p.crop.w, p.crop.h).save_png(&out.join("crop.png"))?;
-    crate::io::write_atomic(&out.join("prep.json"), p.to_json().as_bytes())?;
+    reg.crop(p.crop.x, p.crop.y, p.crop.w, p.crop.h).save_png(&out.join("crop.png"))?;
+    woven::io::write_atomic(&out.join("prep.json"), p.to_json().as_bytes())?;
     println!(
         "{}: angle {:.2}°, pitch {:.1}×{:.1} px, period {:.1}×{:.1} px, n_e×n_a = {}×{}, crop {}×{} at ({}, {}) in {:.2} s -> {}",
         image.display(),
@@ -207,15 +192,4 @@ pub fn prep(image: &Path, out: &Path, no_perspective: bool) -> Result<crate::pre
         out.display()
     );
     Ok(p)
-}
-
-/// Cut a window out of an image (clamped to its bounds).
-pub fn crop(img: &Image, x: u32, y: u32, w: u32, h: u32) -> Image {
-    let w = w.min(img.width.saturating_sub(x)).max(1);
-    let h = h.min(img.height.saturating_sub(y)).max(1);
-    let data = (0..h)
-        .flat_map(|j| (0..w).map(move |i| (i, j)))
-        .map(|(i, j)| img.get((x + i).min(img.width - 1), (y + j).min(img.height - 1)))
-        .collect();
-    Image::new(w, h, data)
 }
