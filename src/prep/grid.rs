@@ -14,8 +14,18 @@
 //!   refined to sub-pixel by a parabola.
 //! * Mean valley spacing: valleys are indexed `k = round((v − v₀)/pitch₀)` and `v = phase + pitch·k`
 //!   is fitted by least squares (equivalent to the mean spacing but robust to a missed valley); one
-//!   round of outlier removal (residual > 0.25 pitch) follows. `phase ∈ [0, pitch)` is the position
-//!   of the first boundary.
+//!   round of outlier removal (residual > 0.25 pitch) follows.
+//! * Phase (`phase ∈ [0, pitch)`, the position of the first boundary): from the *edges*, not the
+//!   valleys. Intensity valleys are boundaries only when the gaps are darker than the yarns; a
+//!   back-lit cloth (bright gaps), two yarn families of different brightness or long floats put
+//!   them at yarn centres or nowhere in particular, half a cell off. The edge energy
+//!   `e(x) = mean_y |∂ log(g + ε)/∂x|` peaks at both sides of every boundary whatever the sign of
+//!   the contrast, and the phase of its fundamental at the pitch is the boundary position. The log
+//!   keeps a highlight-lit yarn edge from outweighing the shadowed edge across the gap (a raking
+//!   light made the plain intensity-edge phase drift by up to a quarter of a cell). The pitch is
+//!   refined the same way (the strongest edge fundamental near the autocorrelation's pitch): with
+//!   bright gaps the valleys come in pairs and their lattice gave a pitch 12 % short. The valley
+//!   lattice stays as the fallback when the edge fundamental is too weak to trust.
 
 use serde::Serialize;
 
@@ -180,14 +190,125 @@ pub fn fit_lattice(vals: &[f64], pitch0: f64) -> (f64, f64) {
     (pitch, off.rem_euclid(pitch))
 }
 
+/// Log-luminance edge energy across `axis_x`: `e[i] = Σ |log(g(i+1)+ε) − log(g(i)+ε)|` over the
+/// other axis (see the module docs); `e[i]` sits at `i + 0.5` in index units.
+pub fn edge_energy(g: &Gray, axis_x: bool) -> Vec<f64> {
+    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
+    // ε keeps dark gaps and sensor noise from dominating the log.
+    let eps = (0.02 * mean).max(1e-6);
+    let lg: Vec<f64> = g.data.iter().map(|&v| (v as f64 + eps).max(eps).ln()).collect();
+    let n = if axis_x { g.w } else { g.h };
+    let mut e = vec![0.0f64; n.saturating_sub(1)];
+    if axis_x {
+        for row in lg.chunks(g.w) {
+            for (ev, pair) in e.iter_mut().zip(row.windows(2)) {
+                *ev += (pair[1] - pair[0]).abs();
+            }
+        }
+    } else {
+        for (ev, rows) in e.iter_mut().zip(lg.chunks(g.w).collect::<Vec<_>>().windows(2)) {
+            *ev = rows[0].iter().zip(rows[1]).map(|(a, b)| (b - a).abs()).sum();
+        }
+    }
+    e
+}
+
+/// Fundamental of `e` at `pitch` over whole periods: (phase in `[0, pitch)` of its maximum,
+/// relative amplitude `|E₁| / E₀`).
+fn fundamental(e: &[f64], pitch: f64) -> (f64, f64) {
+    if pitch <= 0.0 || e.is_empty() {
+        return (0.0, 0.0);
+    }
+    // Only whole periods, so a partial period at the end does not bias the phase.
+    let m = (((e.len() as f64 / pitch).floor() * pitch).floor() as usize).clamp(1, e.len());
+    let (mut re, mut im) = (0.0f64, 0.0f64);
+    for (i, &v) in e[..m].iter().enumerate() {
+        let a = std::f64::consts::TAU * (i as f64 + 0.5) / pitch;
+        re += v * a.cos();
+        im += v * a.sin();
+    }
+    let e0: f64 = e[..m].iter().sum();
+    if e0 <= 0.0 {
+        return (0.0, 0.0);
+    }
+    ((im.atan2(re) / std::f64::consts::TAU * pitch).rem_euclid(pitch), (re * re + im * im).sqrt() / e0)
+}
+
+/// Pitch, boundary phase and confidence from the edge energy across `axis_x`: the pitch is the
+/// strongest edge fundamental within ±12 % of `pitch0` (the autocorrelation's estimate), the phase
+/// that fundamental's maximum, the confidence its relative amplitude `|E₁| / E₀` (0 without edges).
+/// Positions are in the profile's index units (pixel `i` at `i`), like the valleys.
+pub fn edge_grid(g: &Gray, axis_x: bool, pitch0: f64) -> (f64, f64, f64) {
+    let e = edge_energy(g, axis_x);
+    let amp = |p: f64| fundamental(&e, p).1;
+    // Grid search then a parabola through the best three samples.
+    let steps = 48;
+    let at = |k: usize| pitch0 * (0.88 + 0.24 * k as f64 / steps as f64);
+    let amps: Vec<f64> = (0..=steps).map(|k| amp(at(k))).collect();
+    let k = (0..=steps).max_by(|&a, &b| amps[a].total_cmp(&amps[b])).unwrap_or(steps / 2);
+    let pitch = if k > 0 && k < steps {
+        at(k) + parabola_offset(amps[k - 1], amps[k], amps[k + 1]) * (at(1) - at(0))
+    } else {
+        at(k)
+    };
+    let (phase, conf) = fundamental(&e, pitch);
+    (pitch, phase, conf)
+}
+
+/// Smallest relative amplitude of the edge fundamental for [`edge_grid`] to set pitch and phase.
+/// Procedural and rendered weaves give 0.2–0.7; fibre noise on a uniform patch stays below 0.05.
+pub const MIN_EDGE_CONFIDENCE: f64 = 0.08;
+
+/// The yarn pitch among `pitch_ac` (the autocorrelation's first strong peak) and its whole
+/// fractions `pitch_ac / k`, with its [`edge_grid`] estimate. The intensity profile of paired yarns
+/// (basket), long floats or a two-colour random pattern repeats best at a multiple of the yarn
+/// pitch, but every yarn boundary makes edges: a fraction is taken when its edge fundamental is at
+/// least 0.6 of the one at `pitch_ac` and the profile's autocorrelation has a peak ≥ 0.25 within
+/// ±25 % of it, which rules out half a yarn (yarn centre against gap correlates negatively) and the
+/// short lags at which any smooth profile correlates. The smallest such fraction wins.
+fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) -> (f64, (f64, f64, f64)) {
+    let base = edge_grid(g, axis_x, pitch_ac);
+    let ac = autocorr(p, p.len() / 2);
+    let mut best = (pitch_ac, base);
+    for k in 2..=8 {
+        let cand = pitch_ac / k as f64;
+        if cand < min_pitch.max(3.0) {
+            break;
+        }
+        let eg = edge_grid(g, axis_x, cand);
+        // The profile must peak near the candidate lag: a smooth profile correlates at any short
+        // lag, but only a real repeat brings the correlation back up.
+        let (lo, hi) =
+            ((0.75 * eg.0).floor() as usize, ((1.25 * eg.0).ceil() as usize).min(ac.len().saturating_sub(2)));
+        let peak = (lo.max(1)..=hi)
+            .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
+            .map(|d| ac[d])
+            .fold(f64::MIN, f64::max);
+        if eg.2 >= MIN_EDGE_CONFIDENCE && eg.2 >= 0.6 * base.2 && peak >= 0.25 {
+            best = (eg.0, eg);
+        }
+    }
+    best
+}
+
 /// Full analysis of one axis of a grey image: `axis_x = true` analyses the column profile, i.e.
 /// the boundaries between warp yarns (pitch in x).
 pub fn analyze_axis(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<AxisGrid> {
     let mut p = profile(g, axis_x);
     detrend(&mut p);
-    let (pitch0, strength) = pitch_from_profile(&p, min_pitch)?;
+    let (pitch_ac, strength) = pitch_from_profile(&p, min_pitch)?;
+    let (pitch0, (epitch, ephase, confidence)) = yarn_pitch(g, axis_x, &p, pitch_ac, min_pitch);
     let vals = valleys(&p, pitch0);
-    let (pitch, phase) = fit_lattice(&vals, pitch0);
+    let (vpitch, vphase) = fit_lattice(&vals, pitch0);
+    let (pitch, phase) = if confidence < MIN_EDGE_CONFIDENCE {
+        (vpitch, vphase)
+    } else if (vpitch / epitch - 1.0).abs() < 0.04 {
+        // The valley lattice agrees: its pitch is the finer one on few repeats (the edge
+        // spectrum's peak is about 1/periods wide); the phase still comes from the edges.
+        (vpitch, fundamental(&edge_energy(g, axis_x), vpitch).0)
+    } else {
+        (epitch, ephase)
+    };
     Some(AxisGrid {
         pitch: pitch as f32,
         phase: phase as f32,
@@ -228,5 +349,74 @@ mod tests {
         let (pitch, phase) = fit_lattice(&valleys(&q, pitch), pitch);
         assert!((pitch - 10.5).abs() < 0.02, "{pitch}");
         assert!((phase - 3.0).abs() < 0.1, "{phase}");
+    }
+
+    /// A grey weave whose boundaries sit at `shift + k·pitch` (index units); `yarn(across, weft)`
+    /// gives the brightness at signed distance `across ∈ [-0.5, 0.5)` from a yarn centre.
+    fn weave(pitch: f64, shift: f64, yarn: impl Fn(f64, bool) -> f64) -> Gray {
+        let p = crate::prep::testutil::twill22();
+        let (w, h) = (160usize, 150usize);
+        let mut data = Vec::with_capacity(w * h);
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for oy in [-1.0 / 3.0, 0.0, 1.0 / 3.0] {
+                    for ox in [-1.0 / 3.0, 0.0, 1.0 / 3.0] {
+                        let (tx, ty) = ((x as f64 + ox - shift) / pitch, (y as f64 + oy - shift) / pitch);
+                        let (i, j) = (ty.floor().rem_euclid(4.0) as usize, tx.floor().rem_euclid(4.0) as usize);
+                        let weft = p[i][j] == 1;
+                        let across = if weft { ty - ty.floor() - 0.5 } else { tx - tx.floor() - 0.5 };
+                        acc += yarn(across, weft) / 9.0;
+                    }
+                }
+                data.push(acc as f32);
+            }
+        }
+        Gray { w, h, data }
+    }
+
+    fn phase_err(got: f64, want: f64, pitch: f64) -> f64 {
+        let d = (got - want).rem_euclid(pitch);
+        d.min(pitch - d)
+    }
+
+    #[test]
+    fn edge_phase_finds_boundaries_for_dark_and_bright_gaps_and_raking_light() {
+        let (pitch, shift) = (13.3, 5.2);
+        let gap = |a: f64| a.abs() > 0.42;
+        let dark = weave(pitch, shift, |a, _| if gap(a) { 0.03 } else { 0.2 + 0.8 * (3.0 * a).cos() });
+        // Back-lit: the gaps are the brightest pixels, so the intensity valleys are yarn edges.
+        let bright = weave(pitch, shift, |a, _| if gap(a) { 1.0 } else { 0.2 + 0.3 * (3.0 * a).cos() });
+        // Two families of very different brightness, lit from one side (highlight off-centre).
+        let raking = weave(pitch, shift, |a, weft| {
+            let base = if weft { 0.8 } else { 0.15 };
+            if gap(a) {
+                0.02
+            } else {
+                base * (0.3 + 0.7 * (3.0 * (a - 0.15)).cos().max(0.0))
+            }
+        });
+        for (name, g) in [("dark gaps", &dark), ("bright gaps", &bright), ("raking light", &raking)] {
+            for axis_x in [true, false] {
+                let (p, ph, conf) = edge_grid(g, axis_x, pitch * 1.06);
+                assert!((p - pitch).abs() < 0.01 * pitch, "{name} {axis_x}: pitch {p}");
+                assert!(conf >= MIN_EDGE_CONFIDENCE, "{name} {axis_x}: confidence {conf}");
+                let e = phase_err(ph, shift, pitch);
+                assert!(e < 0.08 * pitch, "{name} axis_x={axis_x}: phase {ph} vs {shift} (err {e})");
+                let a = analyze_axis(g, axis_x, 3.0).expect("grid");
+                assert!(
+                    phase_err(a.phase as f64, shift, pitch) < 0.08 * pitch,
+                    "{name}: {} pitch {}",
+                    a.phase,
+                    a.pitch
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn edge_phase_has_no_confidence_without_edges() {
+        let flat = Gray { w: 64, h: 64, data: vec![0.5; 64 * 64] };
+        assert_eq!(edge_grid(&flat, true, 10.0).2, 0.0);
     }
 }

@@ -258,8 +258,12 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let ay = pick(analyze_axis(&gr, false, min_pitch), &ay0);
     let n_a = ((per_x.period / ax.pitch).round() as usize).max(1);
     let n_e = ((per_y.period / ay.pitch).round() as usize).max(1);
-    let (cx, cw) = crop_axis(ax.phase, ax.pitch, n_a, w);
-    let (cy, ch) = crop_axis(ay.phase, ay.pitch, n_e, h);
+    // The crop spans one period: when a repeat was found its length is the DMF period (measured
+    // over the whole image, finer than n pitches of the local grid); the start is a boundary.
+    let span =
+        |per: &period::AxisPeriod, pitch: f32, n: usize| if per.repeated { per.period / n as f32 } else { pitch };
+    let (cx, cw) = crop_axis(ax.phase, span(&per_x, ax.pitch, n_a), n_a, w);
+    let (cy, ch) = crop_axis(ay.phase, span(&per_y, ay.pitch, n_e), n_e, h);
     Ok(Prepared {
         rectified: rect.image.clone(),
         regularized,
