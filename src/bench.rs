@@ -124,9 +124,10 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
     Ok(())
 }
 
-/// Decision 4 check: does each appearance parameter visibly change the image over its range? RMSE
-/// (linear) between renders at the parameter's minimum and maximum, everything else at the preset, for
-/// the front-lit and back-lit rigs (re-shaded from one set of recorded paths per rig).
+/// Design decision 4 (docs/design.md) check: does each appearance parameter visibly change the
+/// image over its range? RMSE (linear) between renders at the parameter's minimum and maximum,
+/// everything else at the preset, for the front-lit and back-lit rigs (re-shaded from one set of
+/// recorded paths per rig).
 pub fn visibility_table(cloth: &ClothParams) -> Result<String> {
     use crate::params::APPEARANCE_RANGES;
     let mut md = String::from("\n### Does every parameter change the image? (decision 4)\n\nRMSE between renders with the parameter at its minimum and at its maximum (96×96, 16 spp, twill 2/2 preset otherwise; mean pixel value ≈ 0.1–0.3). `≈0` marks parameters the image cannot determine.\n\n| parameter | range | front rig | back rig |\n|---|---|---|---|\n");

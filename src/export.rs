@@ -1,10 +1,10 @@
-//! Geometry export (issue 7.5): the yarn centre curves of a fitted cloth, tiled over a few pattern
+//! Geometry export (docs/design.md §7): the yarn centre curves of a fitted cloth, tiled over a few pattern
 //! repeats, in formats other tools read — PLY polylines, a PLY tube mesh (optionally the plies as
 //! separate thinner tubes) and a Mitsuba 3 scene with B-spline curves, a stand-in material, the
 //! camera and the lights. See `docs/export.md`.
 //!
 //! Units are the renderer's: the yarn pitch is 10, the cloth's mid-plane is z = 0 and its front faces
-//! +z; weft yarns run along x, warp yarns along y (pipeline.md §0).
+//! +z; weft yarns run along x, warp yarns along y (docs/design.md §0).
 //!
 //! Curves: each weft row of each repeat row is one continuous curve across all repeats along x (and
 //! each warp column of each repeat column one curve along y), so the number of curves is

@@ -1,4 +1,4 @@
-//! Noise post-estimation (paper §6.3, pipeline.md §6): a spectral model of what the fit leaves out
+//! Noise post-estimation (paper §6.3, docs/design.md §6): a spectral model of what the fit leaves out
 //! (flyaways, highlights, irregular yarns), fitted to the residual `rectified crop − regularized crop`
 //! and re-synthesised for a patch of any size, to be added to a render as post-processing.
 //!

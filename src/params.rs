@@ -1,4 +1,4 @@
-//! Cloth parameters (the system paper's Table 1) plus the scene, with JSON I/O and validation.
+//! Cloth parameters (Table 1 of Wu et al. 2025 \[Wu25\]) plus the scene, with JSON I/O and validation.
 //!
 //! Every continuous parameter has a Table-1 range; the same ranges are the dataset priors, the
 //! network's output ranges and the optimizer's barrier bounds. [`Appearance`] is the part of the

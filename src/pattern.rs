@@ -1,4 +1,4 @@
-//! Binary weave patterns `P` (pipeline.md §0): `n_e` rows (weft yarns, along image x) × `n_a`
+//! Binary weave patterns `P` (docs/design.md §0): `n_e` rows (weft yarns, along image x) × `n_a`
 //! columns (warp yarns, along image y); `P[i][j] = 1` means weft `i` lies over warp `j`.
 
 use serde::{Deserialize, Deserializer, Serialize, Serializer};

@@ -73,7 +73,7 @@ pub enum LightSpec {
     },
 }
 
-/// Ambient light plus a list of lights (pipeline.md §1 default: ambient + front, back, two sides).
+/// Ambient light plus a list of lights (docs/design.md §1.6 default: ambient + front, back, two sides).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LightRig {

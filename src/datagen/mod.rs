@@ -1,4 +1,4 @@
-//! Synthetic training set generator (issue 3; pipeline.md §4.3): renders `count` images with
+//! Synthetic training set generator (docs/design.md §4.3): renders `count` images with
 //! parameters drawn from the Table-1 priors of a recipe, writes per-image labels, and assembles
 //! `labels.jsonl`, `manifest.json` and a contact sheet. Deterministic (same recipe and seed give
 //! the same bytes whatever the threads or sharding), resumable and interruptible.

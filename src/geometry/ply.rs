@@ -1,4 +1,4 @@
-//! Implicit plies and fibers (forward-model.md §1.2–1.4): helical plies inside the yarn tube,
+//! Implicit plies and fibers (docs/design.md §1.2–§1.4): helical plies inside the yarn tube,
 //! fibers as 1D cross-section tables (normal perturbation and ambient occlusion per angle).
 
 use super::yarn::YarnCurve;
@@ -30,7 +30,7 @@ pub struct CrossSection {
 impl CrossSection {
     /// Build for `n` elements of radius `er` with centres at radii `radii[i]`, angles `2πi/n`
     /// (bundle radius 1). AO is the cosine-weighted 2D visibility over the outward half-plane
-    /// (forward-model ambiguity 13), then min–max normalised.
+    /// (ambiguity 13, docs/design.md), then min–max normalised.
     pub fn build(radii: &[f32], er: f32) -> Self {
         let n = radii.len();
         let centres: Vec<Vec2> = (0..n)
@@ -136,7 +136,7 @@ pub struct PlyModel {
     pub n_f: u32,
 }
 
-/// Result of mapping a tube point + ray direction to the implicit plies (§1.3).
+/// Result of mapping a tube point + ray direction to the implicit plies (docs/design.md §1.3).
 #[derive(Clone, Copy, Debug)]
 pub struct PlyHit {
     /// Distance along the ray from the tube point to the ply surface (negative: behind).
@@ -178,12 +178,12 @@ impl PlyModel {
         (kappa, kappa_f)
     }
 
-    /// Does the line through `q` along `d` cross any ply of `yarn` (ply visibility `V_p`, §3.1)?
+    /// Does the line through `q` along `d` cross any ply of `yarn` (ply visibility `V_p`, docs/design.md §1.7)?
     pub fn blocks(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
         self.intersect(yarn, q, d, true).is_some()
     }
 
-    /// Ply intersection in the yarn's normal cross-section at `q` (projected ray, §1.3 step 4).
+    /// Ply intersection in the yarn's normal cross-section at `q` (projected ray, docs/design.md §1.3).
     /// `entry`: the first ply surface at `t ≥ 0`; otherwise the last ply surface left at `t ≤ 0`.
     /// Returns (t, ply index, crossed count, 2D hit, ply centre, ply phase, frame, s).
     fn intersect(&self, yarn: &YarnCurve, q: Vec3, d: Vec3, entry: bool) -> Option<PlyLocal> {

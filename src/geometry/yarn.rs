@@ -1,4 +1,4 @@
-//! Yarn centre curves generated from the weave pattern (paper Appendix A, pipeline.md §1).
+//! Yarn centre curves generated from the weave pattern (paper Appendix A, docs/design.md §1.1).
 //!
 //! Weft `i` runs along x at `y = (i + ½)·PITCH`, warp `j` along y at `x = (j + ½)·PITCH`. Each
 //! yarn's height is a periodic cubic B-spline over `CTRL_PER_CELL` control values per crossed
@@ -75,7 +75,7 @@ impl YarnCurve {
         let mut arc = vec![0.0; n + 1];
         for k in 0..n {
             let slope = |s: f32| (1.0 + height.eval(s).1.powi(2)).sqrt();
-            // Simpson's rule per step: the true arc length (forward-model ambiguity 18).
+            // Simpson's rule per step: the true arc length (ambiguity 18, docs/design.md).
             let s0 = k as f32 * ds;
             arc[k + 1] = arc[k] + ds / 6.0 * (slope(s0) + 4.0 * slope(s0 + ds / 2.0) + slope(s0 + ds));
         }

@@ -1,4 +1,4 @@
-//! The pre-estimator network (pipeline.md §2, §4.3).
+//! The pre-estimator network (docs/design.md §2, §4.3).
 //!
 //! A small VGG-style convolutional network trained from scratch on synthetic renders. From one
 //! close-up photo it predicts the weave-pattern class and a list of range-normalised cloth
@@ -151,7 +151,7 @@ impl OutputSpec {
 #[serde(rename_all = "lowercase")]
 pub enum FeatureType {
     /// Upper triangles of the Gram matrices of every backbone block (texture statistics, as in
-    /// the paper's seed 002).
+    /// Li et al. 2024 \[Li24\]).
     Gram,
     /// Global average- and max-pooled activations of every block.
     Pooled,

@@ -1,15 +1,15 @@
-//! Image preparation (paper §4, design `pipeline.md` §3): turn one close-up photo of a woven
+//! Image preparation (paper §4, docs/design.md §3): turn one close-up photo of a woven
 //! fabric into an axis-aligned, regularized image plus the yarn grid and the minimum repeating
 //! pattern size.
 //!
 //! Steps, in the order [`prepare`] runs them:
 //! 1. [`rectify`] — Laplacian + Radon transform → dominant yarn angle, rotation, crop; then a
-//!    RANSAC vanishing-point fit removes slight perspective (§4.1, [CDI14]).
+//!    RANSAC vanishing-point fit removes slight perspective (§4.1, \[Chaudhury14\]).
 //! 2. A first pitch estimate from the integral projections of the rectified image ([`grid`]); its
 //!    autocorrelation is the *periodicity strength* that rejects images without yarns.
 //! 3. Gaussian blur with σ = pitch/16 ([`regularize`]).
 //! 4. [`period`] — superposed distance matching functions of all rows / columns → the
-//!    minimum pattern size in pixels (§4.3, [ANB12]).
+//!    minimum pattern size in pixels (§4.3, \[Asha12\]).
 //! 5. Kernel PCA on period-sized tiles → the regularized ("ideal") image ([`regularize`], §4.2).
 //! 6. [`grid`] — integral projections of the regularized image → yarn boundaries, pitch and
 //!    phase; `n_a = round(period_x / pitch_x)`, `n_e = round(period_y / pitch_y)` (§4.4).

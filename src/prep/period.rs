@@ -1,5 +1,5 @@
-//! Minimum pattern size detection (paper §4.3, after Asha, Bhajantri & Nagabhushan 2012,
-//! the paper's [ANB12]).
+//! Minimum pattern size detection (paper §4.3, after Asha, Nagabhushan & Bhajantri 2012,
+//! \[Asha12\] in docs/bibliography.md).
 //!
 //! The distance matching function (DMF) of a signal `r` at lag `d` is the mean squared difference
 //! between `r` and its copy shifted by `d`. We superpose (sum) the DMFs of all rows (period in x)

@@ -17,7 +17,7 @@
 //!    parabolic fit of the peak. The image is then rotated (bilinear) by −θ and cropped to the
 //!    largest centred rectangle of the input's aspect ratio that holds only valid pixels.
 //! 2. **Perspective** (after Chaudhury, DiVerdi & Ioffe 2014, "Auto-rectification of user
-//!    photos", the paper's [CDI14]). On the rotated image, the local direction of each yarn family is
+//!    photos", \[Chaudhury14\]). On the rotated image, the local direction of each yarn family is
 //!    measured with the same Radon energy on 5×5 overlapping discs (±8° around 0° and 90°). Each
 //!    measurement is a line through the disc centre. For each family a vanishing point is fitted with
 //!    RANSAC (exhaustive pairs of lines as hypotheses, inlier = angular residual < 0.6°), refined by

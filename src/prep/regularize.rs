@@ -1,5 +1,5 @@
 //! Regularization (paper §4.2): Gaussian blur, then Kernel PCA (Schölkopf, Smola & Müller 1997,
-//! the paper's [SSM97]) to keep the dominant repeated structure of the weave.
+//! \[Schoelkopf97\]) to keep the dominant repeated structure of the weave.
 //!
 //! **Blur.** σ = pitch / 16 px (the paper: a yarn cross-section holds 10–20 fibres).
 //!

@@ -1,8 +1,8 @@
-//! Path construction (forward-model decision 5, Appendix A): camera ray → x0 → y0 → x1 → y1 with
+//! Path construction (design decision 5, docs/design.md §1.6): camera ray → x0 → y0 → x1 → y1 with
 //! next-event estimation at every vertex, refraction always followed, implicit plies tested at
 //! every tube crossing. Paths are recorded as [`PathVertex`]es whose weights are functions of the
 //! appearance parameters only, so a recorded path can be re-shaded (and differentiated) without
-//! re-tracing (decision 6: sampling detached, weight `f(θ)/p(θ₀)`).
+//! re-tracing (design decision 6: sampling detached, weight `f(θ)/p(θ₀)`).
 
 use super::camera::Camera;
 use super::lights::{Light, LightSample};
@@ -183,7 +183,7 @@ impl Tracer<'_> {
     }
 
     /// Visibility along `dir` from world point `pw` (tile point `pt`) on yarn `yarn`, testing the
-    /// implicit plies at every tube crossing (ply visibility `V_p`, §3.1, ambiguity 17).
+    /// implicit plies at every tube crossing (ply visibility `V_p`, docs/design.md §1.7, ambiguity 17).
     fn visible(&self, yarn: usize, pw: Vec3, pt: Vec3, nt: Vec3, dir: Vec3, max_dist: f32) -> bool {
         let own = &self.geom.set.yarns[yarn];
         let mut start = pw;

@@ -1,7 +1,7 @@
-//! Shading of recorded paths (the estimator of forward-model §2.7 with the physical throughput
+//! Shading of recorded paths (the estimator of docs/design.md §1.6 with the physical throughput
 //! option of ambiguity 8): for each vertex and light sample,
 //! `L += thr · V · Le/pdf · (τS_acc·f_S + τB_acc·f_B)·|c_l|`, and after a sampled refraction
-//! `thr *= f_t(θ)·|c_t| / p(θ₀)` (detached sampling, decision 6).
+//! `thr *= f_t(θ)·|c_t| / p(θ₀)` (detached sampling, design decision 6).
 
 use super::integrator::{LightHit, PathVertex};
 use crate::geometry::yarn::Family;

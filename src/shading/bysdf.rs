@@ -1,6 +1,7 @@
-//! The BYSDF (system paper eq. (1)–(4), forward-model.md decisions 1–3): specular reflection and
-//! transmission at the entry point x, specular transmission at the exit point y, body reflection
-//! (Lommel–Seeliger + diffusion) and body transmission, with ply/fiber shadowing.
+//! The BYSDF (Wu et al. 2025 \[Wu25\] eq. (1)–(4), design decisions 1–3 in docs/design.md):
+//! specular reflection and transmission at the entry point x, specular transmission at the exit
+//! point y, body reflection (Lommel–Seeliger + diffusion) and body transmission, with ply/fiber
+//! shadowing.
 //!
 //! Energy: the body lobes are weighted by the energy that enters the yarn and is not carried by
 //! the specular transmission, `(1 − F(c_v))·(1 − T)`, so a vertex never reflects or transmits
@@ -74,7 +75,7 @@ fn rd(a: f32) -> (f32, f32) {
     (v, dv)
 }
 
-/// Invert `R_d` by bisection (forward-model [R]) with the derivative from the inverse function rule.
+/// Invert `R_d` by bisection (docs/design.md §1.5) with the derivative from the inverse function rule.
 fn inv_rd<T: Real>(rb: T) -> T {
     let target = rb.v().clamp(0.0, 1.0);
     let (mut lo, mut hi) = (0.0f32, 1.0f32);
@@ -150,7 +151,7 @@ pub struct Lobes<T: Real> {
     pub body: [T; 3],
 }
 
-/// Floors the shadowing: `g = 1 − G·(1 − AO)` (decision 2).
+/// Floors the shadowing: `g = 1 − G·(1 − AO)` (design decision 2, docs/design.md).
 pub fn shadow_factor<T: Real>(strength: T, ao: f32) -> T {
     (strength * (1.0 - ao)).one_minus()
 }
@@ -216,7 +217,7 @@ pub fn eval<T: Real>(
     Lobes { spec, body }
 }
 
-/// Beer–Lambert attenuation `τ(x, y, A)^{N_i} = exp(−A·‖y − x‖·N_i)` (§2.2).
+/// Beer–Lambert attenuation `τ(x, y, A)^{N_i} = exp(−A·‖y − x‖·N_i)` (docs/design.md §1.5, ambiguity 7).
 pub fn attenuation<T: Real>(a: T, chord: f32, n_i: u32) -> T {
     (a * (-chord * n_i as f32)).exp()
 }

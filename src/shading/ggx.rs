@@ -95,7 +95,7 @@ pub fn reflect_cos<T: Real>(v: Vec3, l: Vec3, alpha: T, eta_ratio: T) -> T {
     f * ndf(h, alpha) * g * (1.0 / (4.0 * v.z.abs()))
 }
 
-/// Transmission lobe times `|c_l|` in the flux-normalised form of the system paper's eq. (1)–(2):
+/// Transmission lobe times `|c_l|` in the flux-normalised form of Wu et al. 2025 \[Wu25\] eq. (1)–(2):
 /// `(1−F)·D·G2·|v·h||l·h|·η_l² / (|c_v| (η_v v·h + η_l l·h)²)`; its albedo is at most `1 − F`.
 /// `eta` is the yarn's IOR; the side of each direction (z > 0 = outside) picks η_v, η_l.
 pub fn transmit_cos<T: Real>(v: Vec3, l: Vec3, alpha: T, eta: T) -> T {
