@@ -539,8 +539,8 @@ impl ClothParams {
     pub fn to_vec(&self) -> [f32; N_PARAMS] {
         let mut v = [0.0; N_PARAMS];
         v[..N_APPEARANCE].copy_from_slice(&self.appearance.to_vec());
-        for k in N_APPEARANCE..N_PARAMS {
-            v[k] = self.get(k);
+        for (k, x) in v.iter_mut().enumerate().skip(N_APPEARANCE) {
+            *x = self.get(k);
         }
         v
     }
@@ -666,10 +666,10 @@ mod tests {
         d.set_vec(&c.to_vec());
         assert_eq!(d, c);
         assert_eq!((c.n_p, c.n_f), (3, 23));
-        for k in 0..N_PARAMS {
+        for (k, p) in PARAMS.iter().enumerate() {
             assert_eq!(c.get(k), c.to_vec()[k]);
             let mut e = c.clone();
-            e.set(k, PARAMS[k].max);
+            e.set(k, p.max);
             let changed: Vec<usize> = (0..N_PARAMS).filter(|&j| e.to_vec()[j] != c.to_vec()[j]).collect();
             assert_eq!(changed, vec![k], "set({k}) changed {changed:?}");
         }
@@ -721,7 +721,8 @@ mod tests {
         }
         assert!(c.validate().is_err());
         assert_eq!(PARAMS[param::N_F].clamp(33.4), 33.0);
-        assert_eq!(PARAMS[param::A_B].fraction(0.4), 0.5);
+        assert!((PARAMS[param::A_B].fraction(0.4) - 0.5).abs() < 1e-6);
+        assert_eq!(PARAMS[param::A_S].fraction(10.5), 0.75);
         assert_eq!(PARAMS[param::A_S].from_fraction(0.25), 9.5);
         let truth = distinct();
         let mut fit = truth.clone();
