@@ -311,61 +311,47 @@ const fn channel(index: usize, names: [&'static str; 3], k: usize) -> ParamInfo 
     ParamInfo { name: names[k], index: index + k, min: 0.0, max: 1.0, kind: ParamKind::Rgb(k), unit: "1" }
 }
 
-/// The three channels of a colour in [0, 1], starting at `index`.
-const fn rgb(index: usize, names: [&'static str; 3]) -> [ParamInfo; 3] {
-    [channel(index, names, 0), channel(index, names, 1), channel(index, names, 2)]
-}
-
 const fn count(index: usize, name: &'static str, min: f32, max: f32) -> ParamInfo {
     ParamInfo { name, index, min, max, kind: ParamKind::Integer, unit: "count" }
 }
 
-/// Concatenation of the table's pieces (const: the table is built at compile time).
+/// The table, built at compile time: every entry is written at its own index (a slot left out
+/// keeps the filler and fails the index check below).
 const fn table() -> [ParamInfo; N_PARAMS] {
     use param::*;
-    let [r_s0, r_s1, r_s2] = rgb(R_S, ["r_s[0]", "r_s[1]", "r_s[2]"]);
-    let [t_s0, t_s1, t_s2] = rgb(T_S, ["t_s[0]", "t_s[1]", "t_s[2]"]);
-    let [t_y0, t_y1, t_y2] = rgb(T_S_Y, ["t_s_y[0]", "t_s_y[1]", "t_s_y[2]"]);
-    let [r_be0, r_be1, r_be2] = rgb(R_B_E, ["r_b_e[0]", "r_b_e[1]", "r_b_e[2]"]);
-    let [r_ba0, r_ba1, r_ba2] = rgb(R_B_A, ["r_b_a[0]", "r_b_a[1]", "r_b_a[2]"]);
-    let [s_be0, s_be1, s_be2] = rgb(S_B_E, ["s_b_e[0]", "s_b_e[1]", "s_b_e[2]"]);
-    let [s_ba0, s_ba1, s_ba2] = rgb(S_B_A, ["s_b_a[0]", "s_b_a[1]", "s_b_a[2]"]);
-    [
-        scalar(M_R, "m_r", 0.2, 0.8, "1"),
-        r_s0,
-        r_s1,
-        r_s2,
-        t_s0,
-        t_s1,
-        t_s2,
-        t_y0,
-        t_y1,
-        t_y2,
-        scalar(ALPHA_S, "alpha_s", 0.0, 1.0, "1"),
-        scalar(ALPHA_S_Y, "alpha_s_y", 0.0, 1.0, "1"),
-        scalar(ETA_S, "eta_s", 1.4, 1.6, "1"),
-        scalar(ETA_S_Y, "eta_s_y", 1.4, 1.6, "1"),
-        scalar(A_S, "a_s", 9.0, 11.0, "1/length"),
-        scalar(A_B, "a_b", 0.1, 0.7, "1/length"),
-        r_be0,
-        r_be1,
-        r_be2,
-        r_ba0,
-        r_ba1,
-        r_ba2,
-        s_be0,
-        s_be1,
-        s_be2,
-        s_ba0,
-        s_ba1,
-        s_ba2,
-        scalar(G_P, "g_p", 0.0, 1.0, "1"),
-        scalar(G_F, "g_f", 0.0, 1.0, "1"),
-        scalar(R_E, "r_e", 1.0, 5.0, "length"),
-        scalar(R_A, "r_a", 1.0, 5.0, "length"),
-        count(N_P, "n_p", 1.0, 7.0),
-        count(N_F, "n_f", 20.0, 50.0),
-    ]
+    let mut t = [scalar(M_R, "m_r", 0.2, 0.8, "1"); N_PARAMS];
+    let colours = [
+        (R_S, ["r_s[0]", "r_s[1]", "r_s[2]"]),
+        (T_S, ["t_s[0]", "t_s[1]", "t_s[2]"]),
+        (T_S_Y, ["t_s_y[0]", "t_s_y[1]", "t_s_y[2]"]),
+        (R_B_E, ["r_b_e[0]", "r_b_e[1]", "r_b_e[2]"]),
+        (R_B_A, ["r_b_a[0]", "r_b_a[1]", "r_b_a[2]"]),
+        (S_B_E, ["s_b_e[0]", "s_b_e[1]", "s_b_e[2]"]),
+        (S_B_A, ["s_b_a[0]", "s_b_a[1]", "s_b_a[2]"]),
+    ];
+    let mut c = 0;
+    while c < colours.len() {
+        let (at, names) = colours[c];
+        let mut k = 0;
+        while k < 3 {
+            t[at + k] = channel(at, names, k);
+            k += 1;
+        }
+        c += 1;
+    }
+    t[ALPHA_S] = scalar(ALPHA_S, "alpha_s", 0.0, 1.0, "1");
+    t[ALPHA_S_Y] = scalar(ALPHA_S_Y, "alpha_s_y", 0.0, 1.0, "1");
+    t[ETA_S] = scalar(ETA_S, "eta_s", 1.4, 1.6, "1");
+    t[ETA_S_Y] = scalar(ETA_S_Y, "eta_s_y", 1.4, 1.6, "1");
+    t[A_S] = scalar(A_S, "a_s", 9.0, 11.0, "1/length");
+    t[A_B] = scalar(A_B, "a_b", 0.1, 0.7, "1/length");
+    t[G_P] = scalar(G_P, "g_p", 0.0, 1.0, "1");
+    t[G_F] = scalar(G_F, "g_f", 0.0, 1.0, "1");
+    t[R_E] = scalar(R_E, "r_e", 1.0, 5.0, "length");
+    t[R_A] = scalar(R_A, "r_a", 1.0, 5.0, "length");
+    t[N_P] = count(N_P, "n_p", 1.0, 7.0);
+    t[N_F] = count(N_F, "n_f", 20.0, 50.0);
+    t
 }
 
 /// The parameter table (system paper, Table 1): the 30 appearance scalars in the BYSDF's order
