@@ -1,7 +1,8 @@
 //! Cloth parameters (the system paper's Table 1) plus the scene, with JSON I/O and validation.
 //!
 //! Every continuous parameter has a Table-1 range; the same ranges are the dataset priors, the
-//! network's output ranges and the optimizer's barrier bounds. [`Appearance`] is the part of the
+//! network's output ranges and the optimizer's barrier bounds. [`PARAMS`] is the one table of the
+//! 34 scalars (name, range, index, kind, unit), [`param`] names their positions. [`Appearance`] is the part of the
 //! parameters that changes shading only (no re-tracing); the yarn radii and the discrete `n_p`,
 //! `n_f`, `P` change geometry.
 
