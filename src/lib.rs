@@ -16,6 +16,7 @@ pub mod fit;
 pub mod geometry;
 pub mod image_io;
 pub mod io;
+pub mod math;
 pub mod net;
 pub mod noise;
 pub mod params;

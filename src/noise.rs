@@ -35,12 +35,14 @@
 //! and each scaled to exactly its residual variance.
 
 use crate::image_io::Image;
+use crate::math::lm::{self, LmOptions, LmProblem};
 use rand::prelude::*;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
 use std::path::Path;
+use std::sync::atomic::AtomicBool;
 
 /// Smallest residual side accepted by [`NoiseModel::fit`].
 pub const MIN_SIDE: u32 = 16;
@@ -335,82 +337,72 @@ fn sse(theta: &[f64], bins: &[(f64, f64, f64)]) -> f64 {
     bins.iter().map(|&(fx, fy, ld)| (SpecModel::eval(theta, fx, fy).max(1e-300).ln() - ld).powi(2)).sum()
 }
 
-/// Solve `a x = b` (dense, partial pivoting); `None` if singular.
-fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
-    let n = b.len();
-    for c in 0..n {
-        let piv = (c..n).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
-        if a[piv][c].abs() < 1e-300 {
-            return None;
-        }
-        a.swap(c, piv);
-        b.swap(c, piv);
-        let (top, rest) = a.split_at_mut(c + 1);
-        let pivot = &top[c];
-        for (i, row) in rest.iter_mut().enumerate() {
-            let f = row[c] / pivot[c];
-            for (x, p) in row[c..].iter_mut().zip(&pivot[c..]) {
-                *x -= f * p;
-            }
-            b[c + 1 + i] -= f * b[c];
-        }
-    }
-    let mut x = vec![0.0; n];
-    for r in (0..n).rev() {
-        let s: f64 = (r + 1..n).map(|k| a[r][k] * x[k]).sum();
-        x[r] = (b[r] - s) / a[r][r];
-    }
-    Some(x)
+/// The log-spectrum misfit as a Levenberg–Marquardt problem ([`crate::math::lm`]): residuals
+/// `ln S(f) − ln D(f)` over the fitted bins, forward-difference Jacobian `J`, gradient `Jᵀr` and
+/// Gauss–Newton Hessian `JᵀJ` (both of half the sum of squares; their common factor cancels in
+/// the step), steps projected by [`SpecModel::clamp`].
+struct SpectrumMisfit<'a> {
+    bins: &'a [(f64, f64, f64)],
+    p: usize,
 }
 
-/// Levenberg–Marquardt on the log-spectrum misfit (forward-difference Jacobian).
-fn levenberg_marquardt(model: &mut SpecModel, bins: &[(f64, f64, f64)], p: usize, iters: usize) -> f64 {
-    let n = model.theta.len();
-    let mut lambda = 1e-2;
-    let mut cur = sse(&model.theta, bins);
-    for _ in 0..iters {
+impl LmProblem for SpectrumMisfit<'_> {
+    type Point = Vec<f64>;
+
+    fn loss(&mut self, theta: &Vec<f64>) -> f64 {
+        sse(theta, self.bins)
+    }
+
+    fn linearise(&mut self, theta: &Vec<f64>) -> (Vec<f64>, Vec<f64>) {
+        let bins = self.bins;
+        let n = theta.len();
         let resid: Vec<f64> =
-            bins.iter().map(|&(fx, fy, ld)| SpecModel::eval(&model.theta, fx, fy).max(1e-300).ln() - ld).collect();
+            bins.iter().map(|&(fx, fy, ld)| SpecModel::eval(theta, fx, fy).max(1e-300).ln() - ld).collect();
         let mut jac = vec![vec![0.0; bins.len()]; n];
         for (j, col) in jac.iter_mut().enumerate() {
-            let h = 1e-5 * (1.0 + model.theta[j].abs());
-            let mut t = model.theta.clone();
+            let h = 1e-5 * (1.0 + theta[j].abs());
+            let mut t = theta.clone();
             t[j] += h;
             for (c, (&(fx, fy, ld), r)) in col.iter_mut().zip(bins.iter().zip(&resid)) {
                 *c = ((SpecModel::eval(&t, fx, fy).max(1e-300).ln() - ld) - r) / h;
             }
         }
-        let jtj: Vec<Vec<f64>> =
-            (0..n).map(|a| (0..n).map(|b| jac[a].iter().zip(&jac[b]).map(|(x, y)| x * y).sum()).collect()).collect();
+        let jtj: Vec<f64> = (0..n * n).map(|k| jac[k / n].iter().zip(&jac[k % n]).map(|(x, y)| x * y).sum()).collect();
         let jtr: Vec<f64> = (0..n).map(|a| jac[a].iter().zip(&resid).map(|(x, y)| x * y).sum()).collect();
-        let mut improved = false;
-        for _ in 0..8 {
-            let mut a = jtj.clone();
-            for (k, row) in a.iter_mut().enumerate() {
-                row[k] += lambda * (jtj[k][k] + 1e-9);
-            }
-            let Some(step) = solve(a, jtr.iter().map(|v| -v).collect()) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let mut t: Vec<f64> = model.theta.iter().zip(&step).map(|(a, b)| a + b).collect();
-            SpecModel::clamp(&mut t, p);
-            let e = sse(&t, bins);
-            if e.is_finite() && e < cur {
-                let rel = (cur - e) / cur.max(1e-300);
-                model.theta = t;
-                cur = e;
-                lambda = (lambda * 0.3).max(1e-9);
-                improved = rel > 1e-7;
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
+        (jtr, jtj)
     }
-    cur
+
+    fn step(&self, theta: &Vec<f64>, delta: &[f64]) -> Vec<f64> {
+        let mut t: Vec<f64> = theta.iter().zip(delta).map(|(a, b)| a + b).collect();
+        SpecModel::clamp(&mut t, self.p);
+        t
+    }
+}
+
+/// Levenberg–Marquardt on the log-spectrum misfit, at most `iters` kept steps: up to 8 trials a
+/// step with the damping ×10 after each refused one (then it gives up), ×0.3 (floor 1e-9) after
+/// a kept one; it stops once a step gains less than 1e-7 of the misfit. Unscaled unknowns, no
+/// step cap (the projection bounds the parameters). Returns the misfit left.
+fn levenberg_marquardt(model: &mut SpecModel, bins: &[(f64, f64, f64)], p: usize, iters: usize) -> f64 {
+    let opts = LmOptions {
+        max_trials: usize::MAX,
+        max_accepted: iters,
+        max_rejections: 8,
+        mu_start: 1e-2,
+        mu_up: 10.0,
+        mu_down: 1.0 / 0.3,
+        mu_min: 1e-9,
+        mu_max: f64::INFINITY,
+        damping_rel: 0.0,
+        damping_abs: 1e-9,
+        max_step: f64::INFINITY,
+        min_rel_gain: Some(1e-7),
+    };
+    let scale = vec![1.0; model.theta.len()];
+    let theta = std::mem::take(&mut model.theta);
+    let out = lm::minimize(&mut SpectrumMisfit { bins, p }, theta, &scale, &opts, &AtomicBool::new(false));
+    model.theta = out.x;
+    out.loss
 }
 
 /// Half-maximum width (in bins) of `excess` from bin (kx, ky) walking along (dx, dy).

@@ -1,7 +1,8 @@
 //! Cloth parameters (Table 1 of Wu et al. 2025 \[Wu25\]) plus the scene, with JSON I/O and validation.
 //!
 //! Every continuous parameter has a Table-1 range; the same ranges are the dataset priors, the
-//! network's output ranges and the optimizer's barrier bounds. [`Appearance`] is the part of the
+//! network's output ranges and the optimizer's barrier bounds. [`PARAMS`] is the one table of the
+//! 34 scalars (name, range, index, kind, unit), [`param`] names their positions. [`Appearance`] is the part of the
 //! parameters that changes shading only (no re-tracing); the yarn radii and the discrete `n_p`,
 //! `n_f`, `P` change geometry.
 
@@ -183,7 +184,197 @@ pub struct ParamFile {
     pub scene: Scene,
 }
 
-/// One scalar entry of the continuous parameter space: name and Table-1 range.
+/// What kind of value a [`ParamInfo`] entry is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ParamKind {
+    /// A real scalar.
+    Scalar,
+    /// Channel `c` (0 = R, 1 = G, 2 = B) of a linear-RGB colour.
+    Rgb(usize),
+    /// A count (`n_p`, `n_f`): a `u32` in [`ClothParams`], its `f32` value in a parameter vector.
+    Integer,
+}
+
+/// One of the [`N_PARAMS`] scalars of Table 1: every consumer (parameter files, the BYSDF, the
+/// network outputs, error tables, clamping, the Cramér–Rao analysis) iterates [`PARAMS`] instead
+/// of spelling the layout out by position.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ParamInfo {
+    /// Flat name as printed in tables and JSON, e.g. `r_s[0]`, `r_e`.
+    pub name: &'static str,
+    /// Position in [`PARAMS`] and in [`ClothParams::to_vec`] (the constants of [`param`]).
+    pub index: usize,
+    /// Lower end of the Table-1 range.
+    pub min: f32,
+    /// Upper end of the Table-1 range.
+    pub max: f32,
+    /// Scalar, colour channel or count.
+    pub kind: ParamKind,
+    /// Unit: `1` (dimensionless), `length` (scene units, yarn pitch = 10), `1/length`, `count`.
+    pub unit: &'static str,
+}
+
+impl ParamInfo {
+    /// Width of the range, `max − min`.
+    pub const fn span(&self) -> f32 {
+        self.max - self.min
+    }
+
+    /// `x` clamped into the range (a count is also rounded to the nearest integer).
+    pub fn clamp(&self, x: f32) -> f32 {
+        let c = x.clamp(self.min, self.max);
+        if self.kind == ParamKind::Integer {
+            c.round()
+        } else {
+            c
+        }
+    }
+
+    /// Position of `x` in the range as a fraction, `(x − min)/(max − min)` (not clamped).
+    pub fn fraction(&self, x: f32) -> f32 {
+        (x - self.min) / (self.max - self.min)
+    }
+
+    /// Inverse of [`ParamInfo::fraction`]: `min + t·(max − min)`.
+    pub fn from_fraction(&self, t: f32) -> f32 {
+        self.min + t * (self.max - self.min)
+    }
+
+    /// Whether `x` is finite and inside the range.
+    pub fn contains(&self, x: f32) -> bool {
+        x.is_finite() && x >= self.min && x <= self.max
+    }
+
+    /// The entry as a name and range.
+    pub const fn range(&self) -> ParamRange {
+        ParamRange { name: self.name, min: self.min, max: self.max }
+    }
+}
+
+/// Positions of the scalars in [`PARAMS`] and in [`ClothParams::to_vec`] (the first
+/// [`N_APPEARANCE`] also in [`Appearance::to_vec`]). A colour's constant is the index of its red
+/// channel; green and blue follow.
+pub mod param {
+    /// `m_r`.
+    pub const M_R: usize = 0;
+    /// `R^S` (3 channels).
+    pub const R_S: usize = 1;
+    /// `T^S` (3 channels).
+    pub const T_S: usize = 4;
+    /// `T^S_y` (3 channels).
+    pub const T_S_Y: usize = 7;
+    /// `α^S`.
+    pub const ALPHA_S: usize = 10;
+    /// `α^S_y`.
+    pub const ALPHA_S_Y: usize = 11;
+    /// `η^S`.
+    pub const ETA_S: usize = 12;
+    /// `η^S_y`.
+    pub const ETA_S_Y: usize = 13;
+    /// `A^S`.
+    pub const A_S: usize = 14;
+    /// `A^B`.
+    pub const A_B: usize = 15;
+    /// `R^B_e` (3 channels).
+    pub const R_B_E: usize = 16;
+    /// `R^B_a` (3 channels).
+    pub const R_B_A: usize = 19;
+    /// `S^B_e` (3 channels).
+    pub const S_B_E: usize = 22;
+    /// `S^B_a` (3 channels).
+    pub const S_B_A: usize = 25;
+    /// `G_p`.
+    pub const G_P: usize = 28;
+    /// `G_f`.
+    pub const G_F: usize = 29;
+    /// `r_e` (first non-appearance scalar).
+    pub const R_E: usize = 30;
+    /// `r_a`.
+    pub const R_A: usize = 31;
+    /// `n_p`.
+    pub const N_P: usize = 32;
+    /// `n_f`.
+    pub const N_F: usize = 33;
+}
+
+/// Number of continuous appearance scalars (the first entries of [`PARAMS`]).
+pub const N_APPEARANCE: usize = 30;
+
+/// Number of scalars in [`PARAMS`]: the appearance, then `r_e`, `r_a`, `n_p`, `n_f`.
+pub const N_PARAMS: usize = 34;
+
+const fn scalar(index: usize, name: &'static str, min: f32, max: f32, unit: &'static str) -> ParamInfo {
+    ParamInfo { name, index, min, max, kind: ParamKind::Scalar, unit }
+}
+
+/// Channel `k` of a colour in [0, 1] whose red channel is at `index`.
+const fn channel(index: usize, names: [&'static str; 3], k: usize) -> ParamInfo {
+    ParamInfo { name: names[k], index: index + k, min: 0.0, max: 1.0, kind: ParamKind::Rgb(k), unit: "1" }
+}
+
+const fn count(index: usize, name: &'static str, min: f32, max: f32) -> ParamInfo {
+    ParamInfo { name, index, min, max, kind: ParamKind::Integer, unit: "count" }
+}
+
+/// The table, built at compile time: every entry is written at its own index (a slot left out
+/// keeps the filler and fails the index check below).
+const fn table() -> [ParamInfo; N_PARAMS] {
+    use param::*;
+    let mut t = [scalar(M_R, "m_r", 0.2, 0.8, "1"); N_PARAMS];
+    let colours = [
+        (R_S, ["r_s[0]", "r_s[1]", "r_s[2]"]),
+        (T_S, ["t_s[0]", "t_s[1]", "t_s[2]"]),
+        (T_S_Y, ["t_s_y[0]", "t_s_y[1]", "t_s_y[2]"]),
+        (R_B_E, ["r_b_e[0]", "r_b_e[1]", "r_b_e[2]"]),
+        (R_B_A, ["r_b_a[0]", "r_b_a[1]", "r_b_a[2]"]),
+        (S_B_E, ["s_b_e[0]", "s_b_e[1]", "s_b_e[2]"]),
+        (S_B_A, ["s_b_a[0]", "s_b_a[1]", "s_b_a[2]"]),
+    ];
+    let mut c = 0;
+    while c < colours.len() {
+        let (at, names) = colours[c];
+        let mut k = 0;
+        while k < 3 {
+            t[at + k] = channel(at, names, k);
+            k += 1;
+        }
+        c += 1;
+    }
+    t[ALPHA_S] = scalar(ALPHA_S, "alpha_s", 0.0, 1.0, "1");
+    t[ALPHA_S_Y] = scalar(ALPHA_S_Y, "alpha_s_y", 0.0, 1.0, "1");
+    t[ETA_S] = scalar(ETA_S, "eta_s", 1.4, 1.6, "1");
+    t[ETA_S_Y] = scalar(ETA_S_Y, "eta_s_y", 1.4, 1.6, "1");
+    t[A_S] = scalar(A_S, "a_s", 9.0, 11.0, "1/length");
+    t[A_B] = scalar(A_B, "a_b", 0.1, 0.7, "1/length");
+    t[G_P] = scalar(G_P, "g_p", 0.0, 1.0, "1");
+    t[G_F] = scalar(G_F, "g_f", 0.0, 1.0, "1");
+    t[R_E] = scalar(R_E, "r_e", 1.0, 5.0, "length");
+    t[R_A] = scalar(R_A, "r_a", 1.0, 5.0, "length");
+    t[N_P] = count(N_P, "n_p", 1.0, 7.0);
+    t[N_F] = count(N_F, "n_f", 20.0, 50.0);
+    t
+}
+
+/// The parameter table (system paper, Table 1): the 30 appearance scalars in the BYSDF's order
+/// ([`Appearance::to_vec`]), then `r_e`, `r_a`, `n_p`, `n_f`. The same ranges are the dataset
+/// priors, the network's output ranges and the optimizer's barrier bounds.
+pub const PARAMS: [ParamInfo; N_PARAMS] = table();
+
+// Every entry sits at its own index (checked when compiling).
+const _: () = {
+    let mut i = 0;
+    while i < N_PARAMS {
+        assert!(PARAMS[i].index == i && PARAMS[i].min < PARAMS[i].max);
+        i += 1;
+    }
+};
+
+/// The table entry called `name` (as in [`ParamInfo::name`]).
+pub fn param_by_name(name: &str) -> Option<&'static ParamInfo> {
+    PARAMS.iter().find(|p| p.name == name)
+}
+
+/// A scalar's name and Table-1 range (the view of a [`ParamInfo`] that range checks need).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ParamRange {
     /// Flat name, e.g. `r_s[0]`.
@@ -194,88 +385,80 @@ pub struct ParamRange {
     pub max: f32,
 }
 
-macro_rules! ranges {
-    ($($n:literal $a:literal $b:literal),* $(,)?) => { &[$(ParamRange { name: $n, min: $a, max: $b }),*] };
+const fn appearance_ranges() -> [ParamRange; N_APPEARANCE] {
+    let mut out = [PARAMS[0].range(); N_APPEARANCE];
+    let mut i = 0;
+    while i < N_APPEARANCE {
+        out[i] = PARAMS[i].range();
+        i += 1;
+    }
+    out
 }
 
-/// The 31 continuous appearance scalars in [`Appearance::to_vec`] order, with Table-1 ranges.
-pub const APPEARANCE_RANGES: &[ParamRange] = ranges![
-    "m_r" 0.2 0.8,
-    "r_s[0]" 0.0 1.0, "r_s[1]" 0.0 1.0, "r_s[2]" 0.0 1.0,
-    "t_s[0]" 0.0 1.0, "t_s[1]" 0.0 1.0, "t_s[2]" 0.0 1.0,
-    "t_s_y[0]" 0.0 1.0, "t_s_y[1]" 0.0 1.0, "t_s_y[2]" 0.0 1.0,
-    "alpha_s" 0.0 1.0, "alpha_s_y" 0.0 1.0,
-    "eta_s" 1.4 1.6, "eta_s_y" 1.4 1.6,
-    "a_s" 9.0 11.0, "a_b" 0.1 0.7,
-    "r_b_e[0]" 0.0 1.0, "r_b_e[1]" 0.0 1.0, "r_b_e[2]" 0.0 1.0,
-    "r_b_a[0]" 0.0 1.0, "r_b_a[1]" 0.0 1.0, "r_b_a[2]" 0.0 1.0,
-    "s_b_e[0]" 0.0 1.0, "s_b_e[1]" 0.0 1.0, "s_b_e[2]" 0.0 1.0,
-    "s_b_a[0]" 0.0 1.0, "s_b_a[1]" 0.0 1.0, "s_b_a[2]" 0.0 1.0,
-    "g_p" 0.0 1.0, "g_f" 0.0 1.0,
-];
+const APPEARANCE_RANGE_TABLE: [ParamRange; N_APPEARANCE] = appearance_ranges();
 
-/// Number of continuous appearance scalars.
-pub const N_APPEARANCE: usize = 30;
+/// Names and ranges of the first [`N_APPEARANCE`] entries of [`PARAMS`] (the appearance scalars).
+pub const APPEARANCE_RANGES: &[ParamRange] = &APPEARANCE_RANGE_TABLE;
 
-/// Yarn radius range (both families).
-pub const RADIUS_RANGE: (f32, f32) = (1.0, 5.0);
-/// Plies-per-yarn range.
-pub const NP_RANGE: (u32, u32) = (1, 7);
-/// Fibers-per-ply range.
-pub const NF_RANGE: (u32, u32) = (20, 50);
+/// Yarn radius range (both families), from [`PARAMS`].
+pub const RADIUS_RANGE: (f32, f32) = (PARAMS[param::R_E].min, PARAMS[param::R_E].max);
+/// Plies-per-yarn range, from [`PARAMS`].
+pub const NP_RANGE: (u32, u32) = (PARAMS[param::N_P].min as u32, PARAMS[param::N_P].max as u32);
+/// Fibers-per-ply range, from [`PARAMS`].
+pub const NF_RANGE: (u32, u32) = (PARAMS[param::N_F].min as u32, PARAMS[param::N_F].max as u32);
 
 impl Appearance {
-    /// Flatten to the order of [`APPEARANCE_RANGES`].
+    /// Flatten to the order of [`PARAMS`] (its first [`N_APPEARANCE`] entries).
     pub fn to_vec(&self) -> [f32; N_APPEARANCE] {
+        use param::*;
         let mut v = [0.0; N_APPEARANCE];
-        let mut k = 0;
-        let mut push = |x: f32| {
-            v[k] = x;
-            k += 1;
-        };
-        push(self.m_r);
-        for c in [self.r_s, self.t_s, self.t_s_y] {
-            c.iter().for_each(|&x| push(x));
+        v[M_R] = self.m_r;
+        for (at, c) in [(R_S, self.r_s), (T_S, self.t_s), (T_S_Y, self.t_s_y)] {
+            v[at..at + 3].copy_from_slice(&c);
         }
-        for x in [self.alpha_s, self.alpha_s_y, self.eta_s, self.eta_s_y, self.a_s, self.a_b] {
-            push(x);
+        v[ALPHA_S] = self.alpha_s;
+        v[ALPHA_S_Y] = self.alpha_s_y;
+        v[ETA_S] = self.eta_s;
+        v[ETA_S_Y] = self.eta_s_y;
+        v[A_S] = self.a_s;
+        v[A_B] = self.a_b;
+        for (at, c) in [(R_B_E, self.r_b_e), (R_B_A, self.r_b_a), (S_B_E, self.s_b_e), (S_B_A, self.s_b_a)] {
+            v[at..at + 3].copy_from_slice(&c);
         }
-        for c in [self.r_b_e, self.r_b_a, self.s_b_e, self.s_b_a] {
-            c.iter().for_each(|&x| push(x));
-        }
-        push(self.g_p);
-        push(self.g_f);
+        v[G_P] = self.g_p;
+        v[G_F] = self.g_f;
         v
     }
 
-    /// Inverse of [`Appearance::to_vec`].
+    /// Inverse of [`Appearance::to_vec`]. Panics unless `v` holds [`N_APPEARANCE`] values.
     pub fn from_slice(v: &[f32]) -> Self {
+        use param::*;
         assert_eq!(v.len(), N_APPEARANCE, "appearance vector length");
         let c = |i: usize| [v[i], v[i + 1], v[i + 2]];
         Appearance {
-            m_r: v[0],
-            r_s: c(1),
-            t_s: c(4),
-            t_s_y: c(7),
-            alpha_s: v[10],
-            alpha_s_y: v[11],
-            eta_s: v[12],
-            eta_s_y: v[13],
-            a_s: v[14],
-            a_b: v[15],
-            r_b_e: c(16),
-            r_b_a: c(19),
-            s_b_e: c(22),
-            s_b_a: c(25),
-            g_p: v[28],
-            g_f: v[29],
+            m_r: v[M_R],
+            r_s: c(R_S),
+            t_s: c(T_S),
+            t_s_y: c(T_S_Y),
+            alpha_s: v[ALPHA_S],
+            alpha_s_y: v[ALPHA_S_Y],
+            eta_s: v[ETA_S],
+            eta_s_y: v[ETA_S_Y],
+            a_s: v[A_S],
+            a_b: v[A_B],
+            r_b_e: c(R_B_E),
+            r_b_a: c(R_B_A),
+            s_b_e: c(S_B_E),
+            s_b_a: c(S_B_A),
+            g_p: v[G_P],
+            g_f: v[G_F],
         }
     }
 
     /// Check every field is finite and inside its Table-1 range.
     pub fn validate(&self) -> Result<(), ParamError> {
-        for (x, r) in self.to_vec().iter().zip(APPEARANCE_RANGES) {
-            check_range(r.name, *x as f64, r.min as f64, r.max as f64)?;
+        for (x, p) in self.to_vec().iter().zip(&PARAMS) {
+            check_range(p.name, *x as f64, p.min as f64, p.max as f64)?;
         }
         Ok(())
     }
@@ -300,17 +483,77 @@ pub fn check_range(field: &str, x: f64, min: f64, max: f64) -> Result<(), ParamE
 }
 
 impl ClothParams {
-    /// Validate every Table-1 field.
+    /// Validate every Table-1 field: the geometry scalars, the body texture, the appearance.
     pub fn validate(&self) -> Result<(), ParamError> {
-        check_range("n_p", self.n_p as f64, NP_RANGE.0 as f64, NP_RANGE.1 as f64)?;
-        check_range("n_f", self.n_f as f64, NF_RANGE.0 as f64, NF_RANGE.1 as f64)?;
-        let (a, b) = (RADIUS_RANGE.0 as f64, RADIUS_RANGE.1 as f64);
-        check_range("r_e", self.r_e as f64, a, b)?;
-        check_range("r_a", self.r_a as f64, a, b)?;
+        for p in &PARAMS[N_APPEARANCE..] {
+            check_range(p.name, self.get(p.index) as f64, p.min as f64, p.max as f64)?;
+        }
         if let Some(t) = &self.body_texture {
             t.validate()?;
         }
         self.appearance.validate()
+    }
+
+    /// Scalar `k` of [`PARAMS`] (a count as its `f32` value). Panics for `k ≥ N_PARAMS`.
+    pub fn get(&self, k: usize) -> f32 {
+        match k {
+            param::R_E => self.r_e,
+            param::R_A => self.r_a,
+            param::N_P => self.n_p as f32,
+            param::N_F => self.n_f as f32,
+            _ => self.appearance.to_vec()[k],
+        }
+    }
+
+    /// Set scalar `k` of [`PARAMS`]; a count is rounded to the nearest integer (negative and
+    /// NaN values give 0, which [`ClothParams::validate`] refuses). Panics for `k ≥ N_PARAMS`.
+    pub fn set(&mut self, k: usize, x: f32) {
+        match k {
+            param::R_E => self.r_e = x,
+            param::R_A => self.r_a = x,
+            param::N_P => self.n_p = x.round() as u32,
+            param::N_F => self.n_f = x.round() as u32,
+            _ => {
+                let mut v = self.appearance.to_vec();
+                v[k] = x;
+                self.appearance = Appearance::from_slice(&v);
+            }
+        }
+    }
+
+    /// The [`N_PARAMS`] scalars in [`PARAMS`] order (the pattern and the body texture are not
+    /// scalars of the table and are left out).
+    pub fn to_vec(&self) -> [f32; N_PARAMS] {
+        let mut v = [0.0; N_PARAMS];
+        v[..N_APPEARANCE].copy_from_slice(&self.appearance.to_vec());
+        for (k, x) in v.iter_mut().enumerate().skip(N_APPEARANCE) {
+            *x = self.get(k);
+        }
+        v
+    }
+
+    /// Inverse of [`ClothParams::to_vec`]: set every scalar from `v` (counts rounded as in
+    /// [`ClothParams::set`]), keeping the pattern and the body texture.
+    pub fn set_vec(&mut self, v: &[f32; N_PARAMS]) {
+        self.appearance = Appearance::from_slice(&v[..N_APPEARANCE]);
+        for (k, x) in v.iter().enumerate().skip(N_APPEARANCE) {
+            self.set(k, *x);
+        }
+    }
+
+    /// A copy with every scalar clamped into its Table-1 range ([`ParamInfo::clamp`]).
+    pub fn clamped(&self) -> ClothParams {
+        let v = self.to_vec();
+        let mut c = self.clone();
+        c.set_vec(&std::array::from_fn(|k| PARAMS[k].clamp(v[k])));
+        c
+    }
+
+    /// Error of every scalar against `truth` as a fraction of its range, `|self − truth|/(max − min)`,
+    /// in [`PARAMS`] order (the error tables of `woven eval` and `woven demo`).
+    pub fn range_errors(&self, truth: &ClothParams) -> [f32; N_PARAMS] {
+        let (a, b) = (self.to_vec(), truth.to_vec());
+        std::array::from_fn(|k| (a[k] - b[k]).abs() / PARAMS[k].span())
     }
 
     /// A named starting point (a plausible fabric) for `woven params --preset NAME`.
@@ -388,12 +631,96 @@ impl ParamFile {
 mod tests {
     use super::*;
 
+    /// A cloth whose 34 scalars are all different (so a swapped position shows).
+    fn distinct() -> ClothParams {
+        let mut c = ClothParams::preset("twill22").unwrap();
+        let v: [f32; N_PARAMS] = std::array::from_fn(|k| match PARAMS[k].kind {
+            ParamKind::Integer => PARAMS[k].min + 2.0 + (k - param::N_P) as f32,
+            _ => PARAMS[k].from_fraction(0.01 + 0.029 * k as f32),
+        });
+        c.set_vec(&v);
+        c
+    }
+
     #[test]
     fn vector_round_trip() {
         let a = Appearance::default();
         let v = a.to_vec();
         assert_eq!(Appearance::from_slice(&v), a);
         assert_eq!(APPEARANCE_RANGES.len(), N_APPEARANCE);
+        let c = distinct();
+        let mut d = ClothParams::preset("twill22").unwrap();
+        d.set_vec(&c.to_vec());
+        assert_eq!(d, c);
+        assert_eq!((c.n_p, c.n_f), (3, 23));
+        for (k, p) in PARAMS.iter().enumerate() {
+            assert_eq!(c.get(k), c.to_vec()[k]);
+            let mut e = c.clone();
+            e.set(k, p.max);
+            let changed: Vec<usize> = (0..N_PARAMS).filter(|&j| e.to_vec()[j] != c.to_vec()[j]).collect();
+            assert_eq!(changed, vec![k], "set({k}) changed {changed:?}");
+        }
+    }
+
+    /// Every entry's name is where the parameter file keeps that value: `r_s[1]` is element 1
+    /// of `cloth.appearance.r_s`, `r_e` is `cloth.r_e`, and the derived ranges agree.
+    #[test]
+    fn table_names_match_the_parameter_file() {
+        let c = distinct();
+        let json = serde_json::to_value(&c).unwrap();
+        for p in &PARAMS {
+            let (field, chan) = match p.name.split_once('[') {
+                Some((f, rest)) => (f, Some(rest.trim_end_matches(']').parse::<usize>().unwrap())),
+                None => (p.name, None),
+            };
+            let obj = if p.index < N_APPEARANCE { &json["appearance"][field] } else { &json[field] };
+            let val = match chan {
+                Some(k) => {
+                    assert_eq!(p.kind, ParamKind::Rgb(k), "{}", p.name);
+                    &obj[k]
+                }
+                None => obj,
+            };
+            assert_eq!(val.as_f64().unwrap() as f32, c.to_vec()[p.index], "{}", p.name);
+            assert_eq!(param_by_name(p.name), Some(p));
+        }
+        assert_eq!(RADIUS_RANGE, (1.0, 5.0));
+        assert_eq!((NP_RANGE, NF_RANGE), ((1, 7), (20, 50)));
+        assert!(APPEARANCE_RANGES.iter().zip(&PARAMS).all(|(r, p)| *r == p.range()));
+        assert_eq!(PARAMS[param::R_B_E].name, "r_b_e[0]");
+        assert_eq!(PARAMS[param::G_F].name, "g_f");
+    }
+
+    #[test]
+    fn clamping_normalising_and_errors() {
+        let mut c = distinct();
+        c.appearance.eta_s = 1.9;
+        c.appearance.r_b_a[2] = -0.5;
+        c.r_a = 0.2;
+        c.n_p = 9;
+        let k = c.clamped();
+        assert_eq!((k.appearance.eta_s, k.appearance.r_b_a[2], k.r_a, k.n_p), (1.6, 0.0, 1.0, 7));
+        assert!(k.validate().is_ok());
+        // Everything that was in range is untouched.
+        let (a, b) = (c.to_vec(), k.to_vec());
+        for (j, p) in PARAMS.iter().enumerate() {
+            assert!(a[j] == b[j] || !p.contains(a[j]), "{}", p.name);
+        }
+        assert!(c.validate().is_err());
+        assert_eq!(PARAMS[param::N_F].clamp(33.4), 33.0);
+        assert!((PARAMS[param::A_B].fraction(0.4) - 0.5).abs() < 1e-6);
+        assert_eq!(PARAMS[param::A_S].fraction(10.5), 0.75);
+        assert_eq!(PARAMS[param::A_S].from_fraction(0.25), 9.5);
+        let truth = distinct();
+        let mut fit = truth.clone();
+        fit.r_e += 1.0;
+        fit.n_f += 3;
+        fit.appearance.m_r += 0.3;
+        let e = fit.range_errors(&truth);
+        let nonzero: Vec<(usize, f32)> = e.iter().copied().enumerate().filter(|(_, x)| *x != 0.0).collect();
+        assert_eq!(nonzero.len(), 3, "{nonzero:?}");
+        assert!((e[param::R_E] - 0.25).abs() < 1e-6 && (e[param::N_F] - 0.1).abs() < 1e-6);
+        assert!((e[param::M_R] - 0.5).abs() < 1e-6);
     }
 
     #[test]

@@ -5,25 +5,25 @@ use glam::Vec3;
 use proptest::prelude::*;
 use rand::{rngs::SmallRng, SeedableRng};
 use woven::geometry::yarn::Family;
-use woven::params::{Appearance, APPEARANCE_RANGES};
+use woven::params::{param, Appearance, PARAMS};
 use woven::shading::albedo::albedo;
 use woven::shading::bysdf::{eval, LocalDirs, ShadeParams, VertexKind};
 
 /// Appearance from unit-cube coordinates, with roughness and IOR snapped to their bounds for some.
 fn appearance(u: &[f64], snap: u8) -> Appearance {
-    let mut v: Vec<f32> = u.iter().zip(APPEARANCE_RANGES).map(|(x, r)| r.min + (r.max - r.min) * *x as f32).collect();
+    let mut v: Vec<f32> = u.iter().zip(&PARAMS).map(|(x, p)| p.from_fraction(*x as f32)).collect();
     match snap % 4 {
         0 => {
-            v[10] = 0.0;
-            v[11] = 0.0;
-            v[12] = 1.4;
-            v[13] = 1.4;
+            v[param::ALPHA_S] = 0.0;
+            v[param::ALPHA_S_Y] = 0.0;
+            v[param::ETA_S] = 1.4;
+            v[param::ETA_S_Y] = 1.4;
         }
         1 => {
-            v[10] = 1.0;
-            v[11] = 1.0;
-            v[12] = 1.6;
-            v[13] = 1.6;
+            v[param::ALPHA_S] = 1.0;
+            v[param::ALPHA_S_Y] = 1.0;
+            v[param::ETA_S] = 1.6;
+            v[param::ETA_S_Y] = 1.6;
         }
         _ => {}
     }

@@ -8,6 +8,7 @@
 use super::model::{self, probabilities, var_shapes, PreNet};
 use super::report::TrainReport;
 use super::{check_image, preprocess, NetError, NetSpec, META_METRICS, META_SPEC};
+use crate::params::{ClothParams, ParamInfo, ParamKind, PARAMS};
 use anyhow::{Context, Result};
 use candle_core::{Device, Tensor};
 use candle_nn::VarMap;
@@ -53,6 +54,20 @@ impl Prediction {
     /// The value of the output called `name`.
     pub fn get(&self, name: &str) -> Option<f64> {
         self.outputs.iter().find(|o| o.name == name).map(|o| o.value)
+    }
+
+    /// Set the parameters of `cloth` that this prediction has an output for (by table name) and
+    /// `keep` selects, each clamped into its Table-1 range (a count rounded first); outputs that
+    /// are not finite are skipped. The pattern and the body texture are untouched.
+    pub fn apply_to(&self, cloth: &mut ClothParams, keep: impl Fn(&ParamInfo) -> bool) {
+        for p in PARAMS.iter().filter(|p| keep(p)) {
+            let Some(x) = self.get(p.name).filter(|x| x.is_finite()) else { continue };
+            let v = match p.kind {
+                ParamKind::Integer => (x.round() as u32).clamp(p.min as u32, p.max as u32) as f32,
+                _ => (x as f32).clamp(p.min, p.max),
+            };
+            cloth.set(p.index, v);
+        }
     }
 }
 
@@ -416,6 +431,43 @@ mod tests {
         let plain = safetensors::serialize(ts.iter().map(|(n, t)| (n.as_str(), t)), None).unwrap();
         let e = PreEstimator::from_bytes(&plain, &p).unwrap_err();
         assert!(e.to_string().contains("no metadata"), "{e}");
+    }
+
+    #[test]
+    fn a_prediction_sets_the_selected_parameters_clamped() {
+        let out = |name: &str, value: f64| PredictedOutput {
+            name: name.into(),
+            value,
+            normalised: 0.5,
+            integer: name.starts_with("n_"),
+        };
+        let p = Prediction {
+            class: 0,
+            class_name: String::new(),
+            class_probs: vec![],
+            outputs: vec![
+                out("m_r", 0.95),
+                out("r_b_e[1]", 0.3),
+                out("eta_s", f64::NAN),
+                out("n_p", 5.6),
+                out("n_f", 80.0),
+                out("r_a", 2.5),
+                out("period", 4.0),
+            ],
+        };
+        let base = ClothParams::preset("twill22").unwrap();
+        let mut c = base.clone();
+        p.apply_to(&mut c, |_| true);
+        assert_eq!((c.appearance.m_r, c.appearance.r_b_e[1], c.n_p, c.n_f, c.r_a), (0.8, 0.3, 6, 50, 2.5));
+        assert_eq!(c.appearance.eta_s, base.appearance.eta_s, "a NaN output is skipped");
+        assert_eq!((c.r_e, &c.pattern), (base.r_e, &base.pattern));
+        // The filter holds back what it does not keep.
+        let mut c = base.clone();
+        p.apply_to(&mut c, |q| !q.name.starts_with("r_b_") && q.kind != ParamKind::Integer);
+        assert_eq!(
+            (c.appearance.m_r, c.appearance.r_b_e, c.n_p, c.n_f),
+            (0.8, base.appearance.r_b_e, base.n_p, base.n_f)
+        );
     }
 
     #[test]

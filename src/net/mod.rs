@@ -25,6 +25,8 @@ pub use model::PreNet;
 pub use report::{EpochStats, OutputError, TrainReport};
 pub use train::{bench_train_step, train, LrSchedule, Sample, TrainConfig};
 
+use crate::math::resample::box_resample;
+use crate::params::{ClothParams, ParamInfo, ParamKind, PARAMS};
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -108,7 +110,8 @@ pub enum NetError {
 /// network: `normalised = (value - min) / (max - min)`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct OutputSpec {
-    /// Parameter name, e.g. `n_p`, `m_r`, `R_B_e.r`.
+    /// Parameter name, e.g. `n_p`, `m_r`, `r_b_e[0]` (for a cloth parameter, its
+    /// [`ParamInfo::name`]).
     pub name: String,
     /// Lower end of the range (Table 1).
     pub min: f64,
@@ -130,6 +133,12 @@ impl OutputSpec {
         Self { name: name.to_string(), min: min as f64, max: max as f64, integer: true }
     }
 
+    /// The output for a cloth parameter of the table: its name, its Table-1 range, integer for
+    /// a count.
+    pub fn for_param(p: &ParamInfo) -> Self {
+        Self { name: p.name.to_string(), min: p.min as f64, max: p.max as f64, integer: p.kind == ParamKind::Integer }
+    }
+
     /// Map a value in the range to `[0,1]` (clamped).
     pub fn normalise(&self, value: f64) -> f32 {
         (((value - self.min) / (self.max - self.min)).clamp(0.0, 1.0)) as f32
@@ -144,6 +153,19 @@ impl OutputSpec {
             v
         }
     }
+}
+
+/// The regression outputs of the pre-estimator: one per cloth parameter, in [`PARAMS`] order
+/// (the 30 appearance scalars, `r_e`, `r_a`, `n_p`, `n_f`). A model file stores its outputs by
+/// name, so a model trained with another order still loads and predicts.
+pub fn cloth_outputs() -> Vec<OutputSpec> {
+    PARAMS.iter().map(OutputSpec::for_param).collect()
+}
+
+/// Training targets of a cloth for [`cloth_outputs`]: every parameter normalised to `[0,1]` by
+/// its range.
+pub fn cloth_targets(cloth: &ClothParams) -> Vec<f32> {
+    cloth.to_vec().iter().zip(cloth_outputs()).map(|(&x, o)| o.normalise(x as f64)).collect()
 }
 
 /// Which image features feed the fully connected layers.
@@ -290,68 +312,26 @@ pub fn check_image(img: &Rgb32FImage) -> Result<(), NetError> {
     Ok(())
 }
 
-/// Box-filter weights mapping `n_src` source samples onto `n_dst` output samples: for each output
-/// sample the list of `(source index, weight)` with weights summing to 1 (exact area coverage).
-fn box_weights(n_src: usize, n_dst: usize) -> Vec<Vec<(usize, f32)>> {
-    let scale = n_src as f64 / n_dst as f64;
-    (0..n_dst)
-        .map(|i| {
-            let a = i as f64 * scale;
-            let b = (i + 1) as f64 * scale;
-            let mut w = Vec::new();
-            let mut j = a.floor() as usize;
-            while (j as f64) < b && j < n_src {
-                let lo = a.max(j as f64);
-                let hi = b.min((j + 1) as f64);
-                if hi > lo {
-                    w.push((j, ((hi - lo) / scale) as f32));
-                }
-                j += 1;
-            }
-            w
-        })
-        .collect()
-}
-
 /// Network input for one image: centre square crop, box-filter in linear space to
-/// `spec.input_size`, encode, normalise. Returns `3 × size × size` values in CHW order.
+/// `spec.input_size` ([`crate::math::resample::box_resample`], the fit's resampling, reading the
+/// crop in place), encode, normalise. Returns `3 × size × size` values in CHW order.
 ///
 /// The image must pass [`check_image`].
 pub fn preprocess(img: &Rgb32FImage, spec: &NetSpec) -> Vec<f32> {
     let size = spec.input_size;
     let (w, h) = img.dimensions();
-    let (w, h) = (w as usize, h as usize);
     let side = w.min(h);
     let (x0, y0) = ((w - side) / 2, (h - side) / 2);
-    let wts = box_weights(side, size);
     let raw = img.as_raw();
-    // Separable: filter rows (x) first into a side × size buffer, then columns (y).
-    let mut tmp = vec![[0f32; 3]; side * size];
-    for y in 0..side {
-        let row = &raw[((y0 + y) * w + x0) * 3..((y0 + y) * w + x0 + side) * 3];
-        for (ox, wx) in wts.iter().enumerate() {
-            let mut acc = [0f32; 3];
-            for &(sx, wt) in wx {
-                for c in 0..3 {
-                    acc[c] += wt * row[sx * 3 + c];
-                }
-            }
-            tmp[y * size + ox] = acc;
-        }
-    }
+    let at = |x: u32, y: u32| {
+        let i = ((y0 + y) as usize * w as usize + (x0 + x) as usize) * 3;
+        [raw[i], raw[i + 1], raw[i + 2]]
+    };
+    let px = box_resample(side, side, at, size as u32, size as u32);
     let mut out = vec![0f32; 3 * size * size];
-    for (oy, wy) in wts.iter().enumerate() {
-        for ox in 0..size {
-            let mut acc = [0f32; 3];
-            for &(sy, wt) in wy {
-                let p = tmp[sy * size + ox];
-                for c in 0..3 {
-                    acc[c] += wt * p[c];
-                }
-            }
-            for (c, &a) in acc.iter().enumerate() {
-                out[c * size * size + oy * size + ox] = encode(a, spec.encoding);
-            }
+    for (i, p) in px.iter().enumerate() {
+        for (c, &a) in p.iter().enumerate() {
+            out[c * size * size + i] = encode(a, spec.encoding);
         }
     }
     out
@@ -372,16 +352,6 @@ mod tests {
 
     fn spec(size: usize) -> NetSpec {
         NetSpec::new(size, vec!["a".into()], vec![OutputSpec::continuous("x", 0.0, 1.0)])
-    }
-
-    #[test]
-    fn box_weights_sum_to_one() {
-        for (s, d) in [(64, 64), (100, 64), (37, 8), (8, 32), (129, 64)] {
-            for w in box_weights(s, d) {
-                let sum: f32 = w.iter().map(|x| x.1).sum();
-                assert!((sum - 1.0).abs() < 1e-5, "{s}->{d}: {sum}");
-            }
-        }
     }
 
     #[test]
@@ -418,6 +388,21 @@ mod tests {
         let toml_s = toml::to_string(&spec(64)).unwrap();
         let back: NetSpec = toml::from_str(&toml_s).unwrap();
         assert_eq!(back, spec(64));
+    }
+
+    #[test]
+    fn cloth_outputs_follow_the_parameter_table() {
+        let o = cloth_outputs();
+        assert_eq!(o.len(), PARAMS.len());
+        assert_eq!(o[crate::params::param::R_E], OutputSpec::continuous("r_e", 1.0, 5.0));
+        assert_eq!(o[crate::params::param::N_F], OutputSpec::integer("n_f", 20, 50));
+        assert_eq!(o[crate::params::param::ETA_S_Y], OutputSpec::continuous("eta_s_y", 1.4f32 as f64, 1.6f32 as f64));
+        let mut c = ClothParams::preset("plain").unwrap();
+        (c.r_e, c.n_p, c.n_f, c.appearance.m_r) = (2.0, 7, 35, 0.8);
+        let t = cloth_targets(&c);
+        use crate::params::param::*;
+        assert_eq!((t[R_E], t[N_P], t[N_F], t[M_R]), (0.25, 1.0, 0.5, 1.0));
+        assert!(t.iter().all(|v| (0.0..=1.0).contains(v)));
     }
 
     #[test]

@@ -5,7 +5,7 @@
 use image::Rgb32FImage;
 use rayon::prelude::*;
 
-use super::linalg::{apply, Homography};
+use crate::math::linalg::{apply, Homography};
 
 /// A single-channel `f32` image, row-major.
 #[derive(Clone, Debug)]

@@ -19,7 +19,6 @@
 
 pub mod grid;
 pub mod image_ops;
-pub mod linalg;
 pub mod period;
 pub mod rectify;
 pub mod regularize;
@@ -29,6 +28,9 @@ mod testutil;
 use image::Rgb32FImage;
 use serde::Serialize;
 
+/// The dense linear algebra now lives in [`crate::math::linalg`]; re-exported here for the
+/// callers that still name it `prep::linalg`.
+pub use crate::math::linalg;
 pub use linalg::Homography;
 pub use regularize::KpcaParams;
 
@@ -345,9 +347,9 @@ impl Prepared {
 
 #[cfg(test)]
 mod tests {
-    use super::linalg::{apply, mat3_inv, mat3_mul, translation};
     use super::testutil::*;
     use super::*;
+    use crate::math::linalg::{apply, mat3_inv, mat3_mul, translation};
 
     fn opts_no_persp() -> PrepOptions {
         PrepOptions { perspective: false, ..Default::default() }

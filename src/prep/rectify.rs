@@ -38,7 +38,7 @@ use image::Rgb32FImage;
 use rayon::prelude::*;
 
 use super::image_ops::{blur_gray, parabola_offset, warp_gray, warp_rgb, Gray};
-use super::linalg::{apply, cross3, mat3_inv, mat3_mul, sym_eigen, translation, Homography};
+use crate::math::linalg::{apply, cross3, mat3_inv, mat3_mul, sym_eigen, translation, Homography};
 
 /// Result of [`rectify`].
 #[derive(Clone, Debug)]

@@ -33,7 +33,7 @@ use image::Rgb32FImage;
 use rayon::prelude::*;
 
 use super::image_ops::blur_rgb;
-use super::linalg::sym_eigen;
+use crate::math::linalg::sym_eigen;
 
 /// Kernel PCA settings.
 #[derive(Clone, Copy, Debug)]

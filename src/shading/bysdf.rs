@@ -94,25 +94,26 @@ fn inv_rd<T: Real>(rb: T) -> T {
 
 impl<T: Real> ShadeParams<T> {
     fn build(v: [T; N_APPEARANCE]) -> Self {
+        use crate::params::param::*;
         let c = |i: usize| [v[i], v[i + 1], v[i + 2]];
-        let r_b = [c(16), c(19)];
+        let r_b = [c(R_B_E), c(R_B_A)];
         let albedo_ls = r_b.map(|rb| rb.map(inv_rd));
         ShadeParams {
-            m_r: v[0],
-            r_s: c(1),
-            t_s: c(4),
-            t_s_y: c(7),
-            alpha: clamp_alpha(v[10]),
-            alpha_y: clamp_alpha(v[11]),
-            eta: v[12],
-            eta_y: v[13],
-            a_s: v[14],
-            a_b: v[15],
+            m_r: v[M_R],
+            r_s: c(R_S),
+            t_s: c(T_S),
+            t_s_y: c(T_S_Y),
+            alpha: clamp_alpha(v[ALPHA_S]),
+            alpha_y: clamp_alpha(v[ALPHA_S_Y]),
+            eta: v[ETA_S],
+            eta_y: v[ETA_S_Y],
+            a_s: v[A_S],
+            a_b: v[A_B],
             r_b,
-            s_b: [c(22), c(25)],
+            s_b: [c(S_B_E), c(S_B_A)],
             albedo_ls,
-            g_p: v[28],
-            g_f: v[29],
+            g_p: v[G_P],
+            g_f: v[G_F],
         }
     }
 }

@@ -1,9 +1,11 @@
-//! Small dense linear algebra needed by the preparation stage (no external LA crate).
+//! Small dense linear algebra (no external LA crate), the one copy every stage uses.
 //!
-//! * 3×3 homographies: product, inverse, point mapping.
+//! * 3×3 homographies: product, inverse, point mapping (photo rectification).
 //! * A cyclic Jacobi eigen-solver for small symmetric matrices, used for the least-squares
-//!   vanishing point (smallest eigenvector of a 3×3 scatter matrix) and for the Rayleigh–Ritz
-//!   step of the Kernel-PCA subspace iteration.
+//!   vanishing point (smallest eigenvector of a 3×3 scatter matrix), for the Rayleigh–Ritz step of
+//!   the Kernel-PCA subspace iteration and for the pseudo-inverse of the fit's Fisher matrix.
+//! * [`cholesky_solve`]: symmetric positive definite systems (the damped normal equations of
+//!   Levenberg–Marquardt, [`crate::math::lm`]).
 
 /// A 3×3 projective transform, row-major, acting on column vectors `(x, y, 1)`.
 pub type Homography = [[f64; 3]; 3];
@@ -142,6 +144,36 @@ pub fn sym_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<Vec<f64>>) {
     (vals, vecs)
 }
 
+/// Solution of `A x = b` for a symmetric positive definite `A` (row-major `n × n`) by Cholesky
+/// factorisation `A = L Lᵀ` and two triangular solves; `None` when `A` is not positive definite
+/// (a pivot `≤ 0` or NaN). Only the lower triangle of `A` is read. The operation order is that
+/// of the fit's appearance Levenberg–Marquardt, whose results are kept bit for bit.
+pub fn cholesky_solve(a: &[f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
+    let mut l = vec![0.0f64; n * n];
+    for i in 0..n {
+        for j in 0..=i {
+            let s: f64 = a[i * n + j] - (0..j).map(|k| l[i * n + k] * l[j * n + k]).sum::<f64>();
+            if i == j {
+                if s.is_nan() || s <= 0.0 {
+                    return None;
+                }
+                l[i * n + i] = s.sqrt();
+            } else {
+                l[i * n + j] = s / l[j * n + j];
+            }
+        }
+    }
+    let mut y = vec![0.0f64; n];
+    for i in 0..n {
+        y[i] = (b[i] - (0..i).map(|k| l[i * n + k] * y[k]).sum::<f64>()) / l[i * n + i];
+    }
+    let mut x = vec![0.0f64; n];
+    for i in (0..n).rev() {
+        x[i] = (y[i] - (i + 1..n).map(|k| l[k * n + i] * x[k]).sum::<f64>()) / l[i * n + i];
+    }
+    Some(x)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -161,6 +193,22 @@ mod tests {
         let (bx, by) = apply(&hi, x, y);
         assert!((bx - 10.0).abs() < 1e-9 && (by - 20.0).abs() < 1e-9);
         assert!(mat3_inv(&[[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 0.0, 1.0]]).is_none());
+    }
+
+    #[test]
+    fn cholesky_solves_spd_and_refuses_indefinite() {
+        // Hand-computed: L = [[2, 0, 0], [1, 2, 0], [0, 0.5, √2.75]], A x = b for x = (1, −2, 0.5).
+        let a = [4.0, 2.0, 0.0, 2.0, 5.0, 1.0, 0.0, 1.0, 3.0];
+        let b = [0.0, -7.5, -0.5];
+        let x = cholesky_solve(&a, &b, 3).expect("SPD");
+        x.iter().zip([1.0, -2.0, 0.5]).for_each(|(u, v)| assert!((u - v).abs() < 1e-12, "{x:?}"));
+        // A 1×1 system and an exactly representable 2×2 one.
+        assert_eq!(cholesky_solve(&[4.0], &[2.0], 1), Some(vec![0.5]));
+        assert_eq!(cholesky_solve(&[4.0, 2.0, 2.0, 2.0], &[6.0, 4.0], 2), Some(vec![1.0, 1.0]));
+        // Indefinite, singular and NaN matrices are refused.
+        assert!(cholesky_solve(&[1.0, 2.0, 2.0, 1.0], &[1.0, 1.0], 2).is_none());
+        assert!(cholesky_solve(&[1.0, 1.0, 1.0, 1.0], &[1.0, 1.0], 2).is_none());
+        assert!(cholesky_solve(&[f64::NAN], &[1.0], 1).is_none());
     }
 
     #[test]
