@@ -16,12 +16,19 @@ struct Stage {
     next_tenth: u64,
     last_message: String,
     start: Instant,
+    /// When the last plain line was printed (or the stage began).
+    last_line: Instant,
 }
+
+/// Plain (non-terminal) mode prints an intermediate line at most this often, so short stages log
+/// one line and long ones a line every tenth.
+const PLAIN_INTERVAL_S: f64 = 5.0;
 
 /// Draws one bar per stage on standard error; hidden when `enabled` is false.
 ///
 /// When standard error is not a terminal (a log file, CI), no bar is drawn: a plain line is printed
-/// at every tenth of a stage and when it finishes (with its last message), so logs stay readable.
+/// at a tenth of a stage when at least 5 s passed since the last one, and when it finishes (with
+/// its last message), so logs stay short and readable.
 /// A message sent while no stage runs (a plan, a note) is printed as its own line.
 pub struct IndicatifProgress {
     stage: Mutex<Option<Stage>>,
@@ -43,6 +50,10 @@ impl IndicatifProgress {
         } else {
             String::new()
         };
+        if s.done >= s.total && s.last_message.starts_with(&s.name) {
+            // The last message is already a summary that names the stage (an epoch's line).
+            return s.last_message.clone();
+        }
         let msg = if s.last_message.is_empty() { String::new() } else { format!(" — {}", s.last_message) };
         format!("{}: {}/{} in {t:.1} s{eta}{msg}", s.name, s.done, s.total)
     }
@@ -78,6 +89,7 @@ impl Progress for IndicatifProgress {
                 next_tenth: 1,
                 last_message: String::new(),
                 start: Instant::now(),
+                last_line: Instant::now(),
             });
         }
     }
@@ -92,7 +104,10 @@ impl Progress for IndicatifProgress {
                 s.done += n;
                 if self.plain && s.total >= 10 && s.done * 10 >= s.next_tenth * s.total && s.done < s.total {
                     s.next_tenth = s.done * 10 / s.total + 1;
-                    eprintln!("{}", Self::plain_line(s));
+                    if s.last_line.elapsed().as_secs_f64() >= PLAIN_INTERVAL_S {
+                        s.last_line = Instant::now();
+                        eprintln!("{}", Self::plain_line(s));
+                    }
                 }
             }
         }
