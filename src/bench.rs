@@ -3,6 +3,7 @@
 
 use crate::image_io::Image;
 use crate::params::ClothParams;
+use crate::progress::Progress;
 use crate::render::{render, Prepared, RenderOptions};
 use crate::scene::{CameraSpec, LightRig, Scene};
 use anyhow::{Context, Result};
@@ -43,8 +44,10 @@ fn bench_scene(size: u32, spp: u32, rig: LightRig) -> Scene {
     Scene { width: size, height: size, spp, lights: rig, ..Scene::default() }
 }
 
-/// Run the benchmark and write its section of `out`.
-pub fn run(out: &Path, quick: bool) -> Result<()> {
+/// Run the benchmark and return its markdown section (the `woven bench` command prints it and
+/// writes it into `docs/benchmarks.md` with [`replace_section`]). Each measurement is announced
+/// to `progress` as a message.
+pub fn run(quick: bool, progress: &dyn Progress) -> Result<String> {
     let cloth = ClothParams::preset("twill22")?;
     let size = 256;
     let ref_spp = if quick { 256 } else { 1024 };
@@ -52,7 +55,7 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
     let mut md = String::new();
     let cmd = if quick { "woven bench --quick" } else { "woven bench" };
     writeln!(md, "Command: `{cmd}` (release build). Scene: twill 2/2, default light rig (ambient + front, back, two sides), orthographic, 2 repeats across, {size}×{size}. Best of {reps} runs.\n")?;
-    eprintln!("reference render at {ref_spp} spp …");
+    progress.message(&format!("reference render at {ref_spp} spp …"));
     let (t_ref, reference) =
         time(1, || render(&cloth, &bench_scene(size, ref_spp, LightRig::default_rig()), &RenderOptions::default()));
     writeln!(md, "Reference: {ref_spp} spp, {t_ref:.1} s on 2 threads.\n")?;
@@ -68,7 +71,7 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
                 img.rmse(&reference),
                 img.psnr_srgb(&reference)
             )?;
-            eprintln!("{spp} spp, {threads} threads: {t:.3} s");
+            progress.message(&format!("{spp} spp, {threads} threads: {t:.3} s"));
         }
     }
     // Re-shading recorded paths vs rendering from scratch.
@@ -117,11 +120,9 @@ pub fn run(out: &Path, quick: bool) -> Result<()> {
         let caps_t = Prepared::new(&cloth, &scene, &RenderOptions::default()).geom.capsule_count();
         writeln!(md, "| one periodic tile instead of every repeat in view ({tiles} repeats across; {caps_w} → {caps_t} capsules) | {t_w:.3} | {t_t:.3} | {:.0}% | {:.5} |", 100.0 * (1.0 - t_t / t_w), a.rmse(&b))?;
     }
+    progress.message("visibility of each appearance parameter …");
     md.push_str(&visibility_table(&cloth)?);
-    print!("{md}");
-    replace_section(out, "Forward model", &md)?;
-    eprintln!("wrote {}", out.display());
-    Ok(())
+    Ok(md)
 }
 
 /// Design decision 4 (docs/design.md) check: does each appearance parameter visibly change the

@@ -91,74 +91,6 @@ pub struct ExportSummary {
     pub control_points: usize,
 }
 
-/// `woven export`: yarn geometry for other renderers.
-#[derive(clap::Args, Clone, Debug)]
-pub struct ExportArgs {
-    /// Parameter file (JSON) of a fit or of `woven params`.
-    pub params: PathBuf,
-    /// Output directory (created if missing).
-    #[arg(long, default_value = "export")]
-    pub out: PathBuf,
-    /// Pattern repeats: `N` (N×N) or `NxM` (N along x, M along y). Default: enough to cover the
-    /// scene's view (at least 1×1).
-    #[arg(long, value_parser = parse_repeats)]
-    pub repeats: Option<[u32; 2]>,
-    /// Also export the plies as separate thinner tubes following their helices (`plies.ply`).
-    #[arg(long)]
-    pub plies: bool,
-    /// Curve samples per pattern cell for the polylines and tube meshes.
-    #[arg(long, default_value_t = 16)]
-    pub samples_per_cell: u32,
-    /// Vertices around each tube.
-    #[arg(long, default_value_t = 12)]
-    pub ring: u32,
-    /// Write the tube meshes as ASCII PLY instead of binary.
-    #[arg(long)]
-    pub ascii: bool,
-}
-
-/// Parse `N` or `NxM` (each in 1..=[`MAX_REPEATS`]).
-pub fn parse_repeats(s: &str) -> Result<[u32; 2], String> {
-    let parts: Vec<&str> = s.trim().split(['x', 'X']).collect();
-    let num = |t: &str| -> Result<u32, String> {
-        let n: u32 = t.trim().parse().map_err(|_| format!("`{s}`: expected N or NxM with whole numbers"))?;
-        if n == 0 || n > MAX_REPEATS {
-            return Err(format!("`{s}`: repeats must be in 1..={MAX_REPEATS}"));
-        }
-        Ok(n)
-    };
-    match parts.as_slice() {
-        [n] => num(n).map(|n| [n, n]),
-        [a, b] => Ok([num(a)?, num(b)?]),
-        _ => Err(format!("`{s}`: expected N or NxM")),
-    }
-}
-
-/// `woven export` entry point.
-pub fn run_export(args: &ExportArgs) -> Result<()> {
-    let params = ParamFile::load(&args.params)?;
-    let opts = ExportOptions {
-        repeats: args.repeats,
-        plies: args.plies,
-        samples_per_cell: args.samples_per_cell,
-        ring: args.ring,
-        ascii: args.ascii,
-    };
-    let s = export(&params, &args.out, &opts)?;
-    println!(
-        "exported {}x{} repeats ({} weft + {} warp curves) to {}{}",
-        s.repeats[0],
-        s.repeats[1],
-        s.weft_curves,
-        s.warp_curves,
-        s.dir.display(),
-        if s.clamped { " (view clamped)" } else { "" }
-    );
-    println!("  files: {}", s.files.join(", "));
-    println!("  units: pitch = {} (renderer units); open scene.xml with mitsuba.load_file", s.pitch);
-    Ok(())
-}
-
 /// The camera as Mitsuba needs it, derived from the renderer's own camera rays.
 #[derive(Clone, Debug)]
 struct View {
@@ -842,10 +774,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn repeats_parse_and_control_values_invert() {
-        assert_eq!(parse_repeats("3").unwrap(), [3, 3]);
-        assert_eq!(parse_repeats("2x5").unwrap(), [2, 5]);
-        assert!(parse_repeats("0").is_err() && parse_repeats("a").is_err() && parse_repeats("1x2x3").is_err());
+    fn control_values_invert() {
         let c: Vec<f32> = (0..24).map(|k| (k as f32 * 0.7).sin()).collect();
         let v: Vec<f32> = (0..24).map(|k| (c[(k + 23) % 24] + 4.0 * c[k] + c[(k + 1) % 24]) / 6.0).collect();
         for (a, b) in control_values(&v).iter().zip(&c) {

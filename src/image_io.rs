@@ -37,6 +37,18 @@ pub enum ImageError {
         /// First y.
         y: u32,
     },
+    /// The header declares more pixels than [`MAX_IMAGE_PIXELS`] (checked before decoding).
+    #[error("image {path} declares {w}x{h} pixels, more than the {max} pixels (512 MiB as linear RGB) accepted; downscale it")]
+    TooLarge {
+        /// File.
+        path: String,
+        /// Declared width.
+        w: u64,
+        /// Declared height.
+        h: u64,
+        /// The limit.
+        max: u64,
+    },
     /// Writing failed.
     #[error("cannot write image {path}: {msg}")]
     Write {
@@ -45,6 +57,66 @@ pub enum ImageError {
         /// Why.
         msg: String,
     },
+}
+
+/// Most pixels an input image may declare: 512 MiB as linear `f32` RGB (12 bytes a pixel), the
+/// same budget as the `image` crate's default decoding limit for PNG and JPEG, so no header can
+/// make a load allocate more than that (about 6900×6900 pixels, far above any close-up photo).
+pub const MAX_IMAGE_PIXELS: u64 = (512 << 20) / 12;
+
+/// Check that JPEG bytes hold every segment up to the end-of-image marker (JPEG, ITU-T T.81 §B.2):
+/// marker segments carry their length, entropy-coded data after a start-of-scan runs to the next
+/// marker that is not a stuffed `FF 00` or a restart `FF D0`–`FF D7`. A file that ends before `FF D9`
+/// was cut short; decoders fill the missing rows with grey instead of failing.
+pub fn check_jpeg_complete(b: &[u8]) -> Result<(), String> {
+    let truncated =
+        || "truncated JPEG: the file ends before its end-of-image marker (a partial download or copy?)".to_string();
+    if b.len() < 2 || b[0] != 0xFF || b[1] != 0xD8 {
+        return Err("not a JPEG file (no start-of-image marker)".into());
+    }
+    let mut i = 2;
+    loop {
+        // Skip anything up to the next marker (decoders tolerate stray bytes), then fill bytes.
+        while i < b.len() && b[i] != 0xFF {
+            i += 1;
+        }
+        while i < b.len() && b[i] == 0xFF {
+            i += 1;
+        }
+        if i >= b.len() {
+            return Err(truncated());
+        }
+        let marker = b[i];
+        i += 1;
+        match marker {
+            0xD9 => return Ok(()),
+            0x01 | 0xD0..=0xD8 => continue,
+            _ => {}
+        }
+        if i + 2 > b.len() {
+            return Err(truncated());
+        }
+        let len = u16::from_be_bytes([b[i], b[i + 1]]) as usize;
+        if len < 2 {
+            return Err(format!("corrupt JPEG: segment {marker:#04x} at byte {} has length {len}", i - 2));
+        }
+        if i + len > b.len() {
+            return Err(truncated());
+        }
+        i += len;
+        if marker == 0xDA {
+            // Entropy-coded data: stop at the first real marker.
+            loop {
+                if i + 1 >= b.len() {
+                    return Err(truncated());
+                }
+                if b[i] == 0xFF && !matches!(b[i + 1], 0x00 | 0xD0..=0xD7 | 0xFF) {
+                    break;
+                }
+                i += 1;
+            }
+        }
+    }
 }
 
 /// A linear RGB `f32` image, row-major.
@@ -130,39 +202,75 @@ impl Image {
         Image::new(img.width(), img.height(), img.pixels().map(|p| p.0).collect())
     }
 
-    /// Write an sRGB PNG atomically.
-    pub fn save_png(&self, path: &Path) -> Result<(), ImageError> {
+    /// The image as sRGB PNG bytes (what [`Image::save_png`] writes).
+    pub fn encode_png(&self) -> Result<Vec<u8>, ImageError> {
         let mut bytes = Vec::new();
         self.to_srgb8()
             .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-            .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })?;
+            .map_err(|e| ImageError::Write { path: "(PNG encoder)".into(), msg: e.to_string() })?;
+        Ok(bytes)
+    }
+
+    /// The image as linear EXR bytes (what [`Image::save_exr`] writes). Blocks are compressed
+    /// one after the other: the parallel writer stores them in the order its threads finish, so
+    /// the same image could give different files.
+    pub fn encode_exr(&self) -> Result<Vec<u8>, ImageError> {
+        use exr::prelude::{Image as ExrImage, SpecificChannels, Vec2, WritableImage};
+        let w = self.width as usize;
+        let channels = SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
+            let p = self.data[y * w + x];
+            (p[0], p[1], p[2])
+        });
+        let mut bytes = Vec::new();
+        ExrImage::from_channels((w, self.height as usize), channels)
+            .write()
+            .non_parallel()
+            .to_buffered(std::io::Cursor::new(&mut bytes))
+            .map_err(|e| ImageError::Write { path: "(EXR encoder)".into(), msg: e.to_string() })?;
+        Ok(bytes)
+    }
+
+    /// Write an sRGB PNG atomically.
+    pub fn save_png(&self, path: &Path) -> Result<(), ImageError> {
+        let bytes = self.encode_png()?;
         crate::io::write_atomic(path, &bytes)
             .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })
     }
 
-    /// Write a linear EXR (written to a temporary name, then renamed).
+    /// Write a linear EXR atomically (deterministic bytes, see [`Image::encode_exr`]).
     pub fn save_exr(&self, path: &Path) -> Result<(), ImageError> {
-        let tmp = crate::io::temp_path(path);
-        let w = self.width as usize;
-        exr::prelude::write_rgb_file(&tmp, w, self.height as usize, |x, y| {
-            let p = self.data[y * w + x];
-            (p[0], p[1], p[2])
-        })
-        .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })?;
-        std::fs::rename(&tmp, path)
+        let bytes = self.encode_exr()?;
+        crate::io::write_atomic(path, &bytes)
             .map_err(|e| ImageError::Write { path: path.display().to_string(), msg: e.to_string() })
     }
 
     /// Read PNG/JPEG (sRGB-decoded; 8/16-bit, grey or RGB(A)) or EXR (linear); rejects tiny
     /// images and NaN/Inf values.
+    ///
+    /// Checked before decoding: the path is a regular file (a FIFO would block forever), the size
+    /// the header declares fits [`MAX_IMAGE_PIXELS`] (a few bytes of EXR can declare 10¹⁰ pixels),
+    /// and a JPEG holds every segment up to its end-of-image marker (the decoder fills a truncated
+    /// file with grey without a word, which prep would then read as yarns).
     pub fn load(path: &Path, min_side: u32) -> Result<Self, ImageError> {
         let p = path.display().to_string();
         let read_err = |msg: String| ImageError::Read { path: p.clone(), msg };
-        if !path.exists() {
-            return Err(read_err("file not found".into()));
+        match crate::io::check_regular_file(path) {
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(read_err("file not found".into())),
+            Err(e) => return Err(read_err(e.to_string())),
         }
+        let check_size = |w: u64, h: u64| -> Result<(), ImageError> {
+            if w.saturating_mul(h) > MAX_IMAGE_PIXELS {
+                return Err(ImageError::TooLarge { path: p.clone(), w, h, max: MAX_IMAGE_PIXELS });
+            }
+            Ok(())
+        };
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_lowercase();
         let img = if ext == "exr" {
+            let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| read_err(e.to_string()))?;
+            for h in meta.headers.iter() {
+                check_size(h.layer_size.width() as u64, h.layer_size.height() as u64)?;
+            }
             let r = exr::prelude::read_first_rgba_layer_from_file(
                 path,
                 |res, _| (res.width(), vec![[0f32; 3]; res.width() * res.height()]),
@@ -175,12 +283,20 @@ impl Image {
             let (_, data) = r.layer_data.channel_data.pixels;
             Image::new(size.width() as u32, size.height() as u32, data)
         } else {
-            let dynimg = image::ImageReader::open(path)
-                .map_err(|e| read_err(e.to_string()))?
-                .with_guessed_format()
-                .map_err(|e| read_err(e.to_string()))?
-                .decode()
-                .map_err(|e| read_err(e.to_string()))?;
+            let reader = || -> Result<_, ImageError> {
+                image::ImageReader::open(path)
+                    .map_err(|e| read_err(e.to_string()))?
+                    .with_guessed_format()
+                    .map_err(|e| read_err(e.to_string()))
+            };
+            let (w, h) = reader()?.into_dimensions().map_err(|e| read_err(e.to_string()))?;
+            check_size(w as u64, h as u64)?;
+            let r = reader()?;
+            if r.format() == Some(image::ImageFormat::Jpeg) {
+                let bytes = std::fs::read(path).map_err(|e| read_err(e.to_string()))?;
+                check_jpeg_complete(&bytes).map_err(read_err)?;
+            }
+            let dynimg = r.decode().map_err(|e| read_err(e.to_string()))?;
             use image::DynamicImage as D;
             match &dynimg {
                 D::ImageRgb32F(_) | D::ImageRgba32F(_) => Image::from_rgb32f(&dynimg.to_rgb32f()),
@@ -291,5 +407,64 @@ impl Image {
             .map(|(i, j)| self.get((x + i).min(self.width - 1), (y + j).min(self.height - 1)))
             .collect();
         Image::new(w, h, data)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn jpeg_bytes() -> Vec<u8> {
+        let img =
+            image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x ^ y) * 3) as u8]));
+        let mut bytes = Vec::new();
+        img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Jpeg).unwrap();
+        bytes
+    }
+
+    #[test]
+    fn jpeg_completeness() {
+        let b = jpeg_bytes();
+        assert_eq!(check_jpeg_complete(&b), Ok(()));
+        // Trailing bytes after the end-of-image marker are harmless.
+        let mut t = b.clone();
+        t.extend_from_slice(b"trailer");
+        assert_eq!(check_jpeg_complete(&t), Ok(()));
+        // Every cut, in the headers or in the scan data, is caught.
+        for cut in [3, 20, b.len() / 2, b.len() - 2] {
+            let e = check_jpeg_complete(&b[..cut]).unwrap_err();
+            assert!(e.contains("truncated"), "cut {cut}: {e}");
+        }
+        assert!(check_jpeg_complete(b"\x89PNG").is_err());
+    }
+
+    #[test]
+    fn encoders_match_the_savers_and_are_deterministic() {
+        let img = Image::new(90, 170, (0..90 * 170).map(|i| [i as f32 / 9e3, 0.5, (i % 7) as f32]).collect());
+        let dir = tempfile::tempdir().unwrap();
+        let (png, exr) = (dir.path().join("a.png"), dir.path().join("a.exr"));
+        img.save_png(&png).unwrap();
+        img.save_exr(&exr).unwrap();
+        assert_eq!(std::fs::read(&png).unwrap(), img.encode_png().unwrap());
+        assert_eq!(std::fs::read(&exr).unwrap(), img.encode_exr().unwrap());
+        for _ in 0..3 {
+            assert_eq!(img.encode_exr().unwrap(), img.encode_exr().unwrap());
+        }
+        assert_eq!(Image::load(&exr, 8).unwrap(), img);
+    }
+
+    #[test]
+    fn truncated_jpeg_and_oversized_exr_are_refused_before_decoding() {
+        let dir = tempfile::tempdir().unwrap();
+        let b = jpeg_bytes();
+        let cut = dir.path().join("cut.jpg");
+        std::fs::write(&cut, &b[..b.len() * 2 / 3]).unwrap();
+        let e = Image::load(&cut, 8).unwrap_err().to_string();
+        assert!(e.contains("truncated JPEG"), "{e}");
+        let whole = dir.path().join("whole.jpg");
+        std::fs::write(&whole, &b).unwrap();
+        assert_eq!(Image::load(&whole, 8).unwrap().width, 64);
+        let folder = Image::load(dir.path(), 8).unwrap_err().to_string();
+        assert!(folder.contains("a folder"), "{folder}");
     }
 }

@@ -48,6 +48,26 @@ pub enum PatternError {
     /// Image could not be read.
     #[error("cannot read pattern image: {0}")]
     Image(String),
+    /// A yarn never changes side, so it floats over (or under) the whole fabric, held by nothing.
+    #[error(
+        "weave pattern {pattern} is not woven: {yarn} {index} lies {side} every {other} (its {line} is all {bit}), so it would float over the whole fabric; every row and every column needs both a 0 and a 1"
+    )]
+    Floating {
+        /// The pattern, as rows `1100/0110/…`.
+        pattern: String,
+        /// `weft` or `warp`.
+        yarn: &'static str,
+        /// Row (weft) or column (warp) index.
+        index: usize,
+        /// `over` or `under`.
+        side: &'static str,
+        /// The crossing family (`warp` for a weft, `weft` for a warp).
+        other: &'static str,
+        /// `row` or `column`.
+        line: &'static str,
+        /// The repeated cell value, `1` or `0`.
+        bit: u8,
+    },
 }
 
 /// A binary weave pattern, always stored reduced to its minimum repeat.
@@ -237,6 +257,47 @@ impl WeavePattern {
     }
 }
 
+impl WeavePattern {
+    /// Check that the pattern is a woven cloth: every weft changes side at least once across the
+    /// warps and every warp across the wefts. A yarn that never does (an all-ones or all-zeros row
+    /// or column) floats over the whole fabric, which no loom makes and the renderer cannot hold
+    /// in place; the error names the first such yarn. Used on user input (parameter files, the
+    /// `params`, `render` and `export` commands) and deliberately not in the constructors: the fit
+    /// builds and scores such candidates internally.
+    pub fn check_woven(&self) -> Result<(), PatternError> {
+        let floating = |yarn, index, first: bool| {
+            let (other, line) = if yarn == "weft" { ("warp", "row") } else { ("weft", "column") };
+            // Cell 1 means weft over warp: a weft row of 1s lies over, a warp column of 1s under.
+            let over = first == (yarn == "weft");
+            Err(PatternError::Floating {
+                pattern: self.to_string(),
+                yarn,
+                index,
+                side: if over { "over" } else { "under" },
+                other,
+                line,
+                bit: first as u8,
+            })
+        };
+        if let Some(i) = (0..self.rows).find(|&i| (0..self.cols).all(|j| self.get(i, j) == self.get(i, 0))) {
+            return floating("weft", i, self.get(i, 0));
+        }
+        if let Some(j) = (0..self.cols).find(|&j| (0..self.rows).all(|i| self.get(i, j) == self.get(0, j))) {
+            return floating("warp", j, self.get(0, j));
+        }
+        Ok(())
+    }
+}
+
+/// A command-line pattern spec, as [`WeavePattern::from_spec`]: a preset name, a text grid
+/// (`1100/0110/…`), or the path of a 0/1 text file or an image.
+impl std::str::FromStr for WeavePattern {
+    type Err = PatternError;
+    fn from_str(spec: &str) -> Result<Self, PatternError> {
+        Self::from_spec(spec)
+    }
+}
+
 impl fmt::Display for WeavePattern {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let s: Vec<String> =
@@ -279,6 +340,22 @@ mod tests {
         }
         assert_eq!(WeavePattern::preset("plain").unwrap().to_string(), "10/01");
         assert_eq!(WeavePattern::preset("twill22").unwrap().to_string(), "1100/0110/0011/1001");
+    }
+
+    #[test]
+    fn floating_yarns_are_named() {
+        for name in PRESETS {
+            WeavePattern::preset(name).unwrap().check_woven().unwrap();
+        }
+        let e = WeavePattern::parse("11/11").unwrap().check_woven().unwrap_err().to_string();
+        assert!(e.contains("weft 0 lies over every warp") && e.contains("row is all 1"), "{e}");
+        let e = WeavePattern::parse("10/10").unwrap().check_woven().unwrap_err().to_string();
+        assert!(e.contains("warp 0 lies under every weft") && e.contains("column is all 1"), "{e}");
+        let e = WeavePattern::parse("110/011/000").unwrap().check_woven().unwrap_err().to_string();
+        assert!(e.contains("weft 2 lies under every warp"), "{e}");
+        let p: WeavePattern = "twill22".parse().unwrap();
+        assert_eq!(p, WeavePattern::preset("twill22").unwrap());
+        assert!("herringbone".parse::<WeavePattern>().is_err());
     }
 
     #[test]

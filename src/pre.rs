@@ -1,12 +1,13 @@
-//! Glue between the dataset, the pre-estimator network and the CLI (`woven train`, `woven predict`):
-//! which outputs the network predicts, how labels become normalised targets, and the model metadata.
+//! Glue between the dataset and the pre-estimator network (behind `woven train` and `woven
+//! predict`): which outputs the network predicts, how labels become normalised targets, training a
+//! model from a dataset folder with its metadata, and loading one.
 
 use crate::image_io::Image;
 use crate::net::{NetSpec, OutputSpec, PreEstimator, Prediction, Sample, TrainConfig};
 use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, RADIUS_RANGE};
+use crate::progress::Progress;
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
-use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
 /// Default location of the shipped model.
@@ -62,13 +63,15 @@ struct LabelLine {
     cloth: ClothParams,
 }
 
-/// A dataset folder written by `woven generate`: class names and samples.
-pub fn load_dataset(dir: &Path) -> Result<(Vec<String>, Vec<Sample>, String)> {
+/// A dataset folder written by `woven generate`: class names, samples and the recipe's SHA-256.
+/// Reports one step per image loaded to `progress` (stage `load dataset`).
+pub fn load_dataset(dir: &Path, progress: &dyn Progress) -> Result<(Vec<String>, Vec<Sample>, String)> {
     let manifest_path = dir.join("manifest.json");
-    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(&manifest_path).with_context(|| {
+    let manifest_bytes = crate::io::read_capped(&manifest_path, crate::io::MAX_TEXT_FILE_BYTES).with_context(|| {
         format!("reading {} (make a dataset with `woven generate --out DIR`)", manifest_path.display())
-    })?)
-    .with_context(|| format!("parsing {}", manifest_path.display()))?;
+    })?;
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&manifest_bytes).with_context(|| format!("parsing {}", manifest_path.display()))?;
     let mut classes: Vec<(usize, String)> = manifest["classes"]
         .as_array()
         .context("manifest.json has no `classes` list")?
@@ -78,10 +81,11 @@ pub fn load_dataset(dir: &Path) -> Result<(Vec<String>, Vec<Sample>, String)> {
     classes.sort();
     let names: Vec<String> = classes.into_iter().map(|c| c.1).collect();
     let recipe_hash = manifest["recipe_sha256"].as_str().unwrap_or("").to_string();
-    let labels = std::fs::File::open(dir.join("labels.jsonl")).context("opening labels.jsonl")?;
-    let lines: Vec<String> = std::io::BufReader::new(labels).lines().collect::<std::io::Result<_>>()?;
-    let pb = indicatif::ProgressBar::new(lines.len() as u64);
-    pb.set_message("loading dataset");
+    let labels_path = dir.join("labels.jsonl");
+    let labels = crate::io::read_text_capped(&labels_path, crate::io::MAX_TEXT_FILE_BYTES)
+        .with_context(|| format!("reading {}", labels_path.display()))?;
+    let lines: Vec<&str> = labels.lines().collect();
+    progress.begin("load dataset", lines.len() as u64);
     let samples: Result<Vec<Sample>> = lines
         .iter()
         .enumerate()
@@ -92,11 +96,11 @@ pub fn load_dataset(dir: &Path) -> Result<(Vec<String>, Vec<Sample>, String)> {
             }
             let path = dir.join("images").join(format!("{:06}.png", l.index));
             let img = Image::load(&path, 8)?;
-            pb.inc(1);
+            progress.advance(1);
             Ok(Sample { image: img.to_rgb32f(), class: l.class_id, targets: targets(&l.cloth), seed: l.sample_seed })
         })
         .collect();
-    pb.finish_and_clear();
+    progress.finish();
     let samples = samples?;
     if samples.is_empty() {
         bail!("dataset {} is empty", dir.display());
@@ -120,7 +124,7 @@ pub struct TrainRecipe {
 /// Model metadata written beside the weights (`models/pre_estimator.json`).
 #[derive(Serialize)]
 struct ModelCard<'a> {
-    weights: &'a str,
+    weights: String,
     architecture: &'a NetSpec,
     parameter_ranges: Vec<(String, f64, f64)>,
     dataset: String,
@@ -133,70 +137,108 @@ struct ModelCard<'a> {
     command: String,
 }
 
-/// Arguments of `woven train`.
-#[derive(clap::Args, Debug)]
-pub struct TrainArgs {
+/// What [`train_model`] does: the dataset, the recipe and where the results go.
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
     /// Dataset folder from `woven generate`.
-    #[arg(long)]
     pub data: PathBuf,
-    /// Training recipe.
-    #[arg(long, default_value = "train/config.toml")]
+    /// Training recipe (`train/config.toml`).
     pub config: PathBuf,
-    /// Where to write the final weights (a `.json` model card is written beside them).
-    #[arg(long, default_value = DEFAULT_MODEL)]
-    pub out: PathBuf,
-    /// Folder for checkpoints, history and curves (report.md and curves.png are also copied to `train/`).
-    #[arg(long, default_value = "train/run")]
+    /// Work folder: checkpoints, history, the trained `model.safetensors` with its card
+    /// `model.json`, `report.md` and `curves.png`. Nothing outside it is written unless asked.
     pub work: PathBuf,
-    /// Continue from the last checkpoint in `--work`.
-    #[arg(long)]
+    /// Also copy the weights here (with the card beside them, same name, `.json`), e.g. the
+    /// shipped [`DEFAULT_MODEL`].
+    pub out: Option<PathBuf>,
+    /// Also copy `report.md` and `curves.png` into this folder (the repository's `train/`).
+    pub report_dir: Option<PathBuf>,
+    /// Continue from the last checkpoint in `work`.
     pub resume: bool,
-    /// Override the number of epochs.
-    #[arg(long)]
+    /// Override the recipe's number of epochs (at least 1).
     pub epochs: Option<usize>,
+    /// The command line recorded in the model card.
+    pub command: String,
 }
 
-/// `woven train`.
-pub fn run_train(a: &TrainArgs) -> Result<()> {
-    let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
-    let mut recipe: TrainRecipe = toml::from_str(&text).with_context(|| format!("parsing {}", a.config.display()))?;
-    if let Some(e) = a.epochs {
+/// What [`train_model`] wrote.
+#[derive(Clone, Debug)]
+pub struct TrainOutcome {
+    /// The trained weights (in the work folder).
+    pub model: PathBuf,
+    /// Every file written outside the work folder (copies asked for by `out` / `report_dir`).
+    pub copies: Vec<PathBuf>,
+    /// Training wall time, seconds.
+    pub seconds: f64,
+    /// Images trained on (train + validation).
+    pub images: usize,
+}
+
+/// `woven train`: load the dataset, train the pre-estimator into `opts.work` (weights, model card,
+/// report, curves), then copy the weights / report where `opts` asks. Progress (dataset loading,
+/// one stage per epoch) goes to `progress`.
+pub fn train_model(opts: &TrainOptions, progress: &dyn Progress) -> Result<TrainOutcome> {
+    let text = crate::io::read_text_capped(&opts.config, crate::io::MAX_TEXT_FILE_BYTES)
+        .with_context(|| format!("reading {}", opts.config.display()))?;
+    let mut recipe: TrainRecipe =
+        toml::from_str(&text).with_context(|| format!("parsing {}", opts.config.display()))?;
+    if let Some(e) = opts.epochs {
+        if e == 0 {
+            bail!("the number of epochs must be at least 1");
+        }
         recipe.train.epochs = e;
     }
-    let (classes, samples, recipe_hash) = load_dataset(&a.data)?;
+    let (classes, samples, recipe_hash) = load_dataset(&opts.data, progress)?;
     let mut spec = NetSpec::new(recipe.input_size, classes, output_specs());
     if let Some(b) = &recipe.backbone {
         spec.backbone = b.clone();
     }
-    eprintln!("training on {} images ({} classes, {} outputs)", samples.len(), spec.classes.len(), spec.outputs.len());
+    progress.message(&format!(
+        "training on {} images ({} classes, {} outputs) in {}",
+        samples.len(),
+        spec.classes.len(),
+        spec.outputs.len(),
+        opts.work.display()
+    ));
     let t0 = std::time::Instant::now();
-    let report = crate::net::train(&samples, &spec, &recipe.train, &a.work, a.resume)?;
-    let secs = t0.elapsed().as_secs_f64();
-    if let Some(dir) = a.out.parent() {
-        std::fs::create_dir_all(dir)?;
-    }
-    std::fs::copy(a.work.join("model.safetensors"), &a.out).context("copying the trained weights")?;
-    report.write_markdown(&a.work.join("report.md"))?;
-    report.write_curves_png(&a.work.join("curves.png"))?;
-    std::fs::create_dir_all("train")?;
-    std::fs::copy(a.work.join("report.md"), "train/report.md")?;
-    std::fs::copy(a.work.join("curves.png"), "train/curves.png")?;
-    let card = ModelCard {
-        weights: &a.out.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default(),
+    let report =
+        crate::net::train::train_with_progress(&samples, &spec, &recipe.train, &opts.work, opts.resume, progress)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let model = opts.work.join("model.safetensors");
+    report.write_markdown(&opts.work.join("report.md"))?;
+    report.write_curves_png(&opts.work.join("curves.png"))?;
+    let mut card = ModelCard {
+        weights: "model.safetensors".into(),
         architecture: &spec,
         parameter_ranges: spec.outputs.iter().map(|o| (o.name.clone(), o.min, o.max)).collect(),
-        dataset: a.data.display().to_string(),
+        dataset: opts.data.display().to_string(),
         dataset_recipe_sha256: recipe_hash,
         dataset_size: samples.len(),
         train_config: &recipe.train,
         metrics: serde_json::to_value(&report)?,
-        training_wall_seconds: secs,
+        training_wall_seconds: seconds,
         date: chrono_like_now(),
-        command: std::env::args().collect::<Vec<_>>().join(" "),
+        command: opts.command.clone(),
     };
-    crate::io::write_atomic(&a.out.with_extension("json"), serde_json::to_string_pretty(&card)?.as_bytes())?;
-    println!("trained in {secs:.0} s -> {} (report: train/report.md)", a.out.display());
-    Ok(())
+    crate::io::write_atomic(&model.with_extension("json"), serde_json::to_string_pretty(&card)?.as_bytes())?;
+    let mut copies = Vec::new();
+    if let Some(out) = &opts.out {
+        let weights = std::fs::read(&model).with_context(|| format!("reading {}", model.display()))?;
+        crate::io::write_atomic(out, &weights).with_context(|| format!("writing {}", out.display()))?;
+        card.weights = out.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+        let out_card = out.with_extension("json");
+        crate::io::write_atomic(&out_card, serde_json::to_string_pretty(&card)?.as_bytes())
+            .with_context(|| format!("writing {}", out_card.display()))?;
+        copies.extend([out.clone(), out_card]);
+    }
+    if let Some(dir) = &opts.report_dir {
+        for f in ["report.md", "curves.png"] {
+            let bytes = std::fs::read(opts.work.join(f))?;
+            crate::io::write_atomic(&dir.join(f), &bytes)
+                .with_context(|| format!("writing {}", dir.join(f).display()))?;
+            copies.push(dir.join(f));
+        }
+    }
+    Ok(TrainOutcome { model, copies, seconds, images: samples.len() })
 }
 
 fn chrono_like_now() -> String {
@@ -215,43 +257,13 @@ fn chrono_like_now() -> String {
     format!("{y:04}-{m:02}-{d:02}")
 }
 
-/// Arguments of `woven predict`.
-#[derive(clap::Args, Debug)]
-pub struct PredictArgs {
-    /// Photo or render (PNG, JPEG, EXR).
-    pub image: PathBuf,
-    /// Model weights.
-    #[arg(long, default_value = DEFAULT_MODEL)]
-    pub model: PathBuf,
-    /// Print JSON instead of a table.
-    #[arg(long)]
-    pub json: bool,
-    /// Also time inference on one thread (mean over 50 predictions, after loading).
-    #[arg(long)]
-    pub timing: bool,
-}
-
-/// `woven predict`.
-pub fn run_predict(a: &PredictArgs) -> Result<()> {
-    let model = PreEstimator::load(&a.model)?;
-    let img = Image::load(&a.image, 8)?;
-    let p = model.predict(&img.to_rgb32f())?;
-    if a.timing {
-        let ms = crate::net::bench_inference(&model, 50);
-        eprintln!("inference: {ms:.2} ms per image on 1 thread ({} px input)", model.spec().input_size);
+/// Load a pre-estimator model file for prediction: refuses what is not a regular file (a FIFO
+/// would block forever) before [`PreEstimator::load`] reads it; the error says how to make one.
+pub fn load_model(path: &Path) -> Result<PreEstimator> {
+    match crate::io::check_regular_file(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(e).with_context(|| format!("cannot read model {}", path.display())),
+        Ok(_) => {}
     }
-    if a.json {
-        println!("{}", serde_json::to_string_pretty(&p)?);
-        return Ok(());
-    }
-    println!("pattern class: {} (p = {:.3})", p.class_name, p.class_probs[p.class]);
-    println!("{:<12} {:>10}", "parameter", "value");
-    for o in &p.outputs {
-        if o.integer {
-            println!("{:<12} {:>10}", o.name, o.value.round() as i64);
-        } else {
-            println!("{:<12} {:>10.4}", o.name, o.value);
-        }
-    }
-    Ok(())
+    Ok(PreEstimator::load(path)?)
 }

@@ -1,6 +1,7 @@
 //! Scene description (camera, light rig, render settings) as stored in parameter files.
 
-use crate::params::{check_range, ParamError, Rgb};
+use crate::params::{check_range, ClothParams, ParamError, ParamFile, Rgb};
+use crate::pattern::{PatternError, WeavePattern};
 use serde::{Deserialize, Serialize};
 
 /// Camera projection.
@@ -103,8 +104,17 @@ impl LightRig {
         }
     }
 
-    /// A named rig: `default`, `front`, `back`, `both` (front + back), `sides`.
+    /// A named rig: `default`, `front`, `back`, `both` (front + back), `sides` (see
+    /// [`LightRig::NAMES`]); `None` for any other name. [`str::parse`] gives an error naming the
+    /// known rigs instead.
     pub fn named(name: &str) -> Option<Self> {
+        name.parse().ok()
+    }
+
+    /// The names [`LightRig::named`] and [`str::parse`] accept (`all` is an alias of `default`).
+    pub const NAMES: &'static [&'static str] = &["default", "front", "back", "both", "sides"];
+
+    fn from_name(name: &str) -> Option<Self> {
         let full = Self::default_rig();
         let keep = |names: &[&str]| LightRig {
             ambient: full.ambient,
@@ -136,6 +146,35 @@ impl LightRig {
                 LightSpec::Directional { direction, .. } => direction[2] < 0.0,
                 LightSpec::Point { position, .. } => position[2] < 0.0,
             })
+    }
+}
+
+/// A light-rig name that is not one of [`LightRig::NAMES`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown light rig `{0}` (known: {known})", known = LightRig::NAMES.join(", "))]
+pub struct UnknownRig(pub String);
+
+impl std::str::FromStr for LightRig {
+    type Err = UnknownRig;
+    fn from_str(name: &str) -> Result<Self, UnknownRig> {
+        Self::from_name(name).ok_or_else(|| UnknownRig(name.to_string()))
+    }
+}
+
+/// A projection name that is neither `orthographic` nor `perspective`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown projection `{0}` (known: orthographic, perspective)")]
+pub struct UnknownProjection(pub String);
+
+/// The names used in parameter files: `orthographic`, `perspective`.
+impl std::str::FromStr for Projection {
+    type Err = UnknownProjection;
+    fn from_str(name: &str) -> Result<Self, UnknownProjection> {
+        match name {
+            "orthographic" => Ok(Projection::Orthographic),
+            "perspective" => Ok(Projection::Perspective),
+            _ => Err(UnknownProjection(name.to_string())),
+        }
     }
 }
 
@@ -225,5 +264,77 @@ impl Scene {
             }
         }
         Ok(())
+    }
+}
+
+/// A complete parameter file for `pattern` (the `woven params` output): the preset cloth (plain
+/// weave's yarns and appearance) with that pattern, the default scene under `lights`.
+pub fn preset_param_file(pattern: WeavePattern, lights: LightRig) -> ParamFile {
+    let mut cloth = ClothParams::preset("plain").expect("the plain preset exists");
+    cloth.pattern = pattern;
+    ParamFile { cloth, scene: Scene { lights, ..Scene::default() } }
+}
+
+/// The example scenes of `woven examples` (the README's figure): (file stem, pattern preset, light
+/// rig), row by row: plain, twill 2/2, satin 5 under the front light, the back light and the
+/// default rig.
+pub const EXAMPLES: &[(&str, &str, &str)] = &[
+    ("plain_front", "plain", "front"),
+    ("plain_back", "plain", "back"),
+    ("plain_both", "plain", "default"),
+    ("twill_front", "twill22", "front"),
+    ("twill_back", "twill22", "back"),
+    ("twill_both", "twill22", "default"),
+    ("satin_front", "satin5", "front"),
+    ("satin_back", "satin5", "back"),
+    ("satin_both", "satin5", "default"),
+];
+
+/// The cloth used for an example of pattern preset `name` (looser yarns for plain, so the gaps
+/// between the yarns show).
+pub fn example_cloth(name: &str) -> Result<ClothParams, PatternError> {
+    let mut c = ClothParams::preset(name)?;
+    if name == "plain" {
+        c.r_e = 3.4;
+        c.r_a = 3.4;
+    }
+    Ok(c)
+}
+
+/// Cloth and scene of one [`EXAMPLES`] entry rendered at `size`² pixels with `spp` samples.
+pub fn example_scene(pattern: &str, rig: &str, size: u32, spp: u32) -> Result<(ClothParams, Scene), PatternError> {
+    let lights = LightRig::named(rig).unwrap_or_default();
+    Ok((example_cloth(pattern)?, Scene { width: size, height: size, spp, lights, ..Scene::default() }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rigs_and_projections_parse_by_name() {
+        for name in LightRig::NAMES {
+            let rig: LightRig = name.parse().unwrap();
+            assert_eq!(LightRig::named(name), Some(rig));
+        }
+        assert_eq!("all".parse::<LightRig>().unwrap(), LightRig::default_rig());
+        assert_eq!("front".parse::<LightRig>().unwrap().lights.len(), 1);
+        let e = "spot".parse::<LightRig>().unwrap_err().to_string();
+        assert!(e.contains("`spot`") && e.ends_with("(known: default, front, back, both, sides)"), "{e}");
+        assert_eq!("perspective".parse::<Projection>(), Ok(Projection::Perspective));
+        assert_eq!("orthographic".parse::<Projection>(), Ok(Projection::Orthographic));
+        assert!("fisheye".parse::<Projection>().unwrap_err().to_string().contains("orthographic, perspective"));
+    }
+
+    #[test]
+    fn examples_and_preset_files_are_valid() {
+        for (_, pattern, rig) in EXAMPLES {
+            let (cloth, scene) = example_scene(pattern, rig, 32, 1).unwrap();
+            ParamFile { cloth, scene }.validate().unwrap();
+            assert!(LightRig::named(rig).is_some(), "{rig}");
+        }
+        let p = preset_param_file(WeavePattern::preset("satin5").unwrap(), LightRig::named("back").unwrap());
+        p.validate().unwrap();
+        assert_eq!(p.scene.lights.lights.len(), 1);
     }
 }

@@ -6,15 +6,13 @@ use crate::geometry::ply::PlyModel;
 use crate::geometry::yarn::{Family, YarnSet};
 use crate::params::{Appearance, APPEARANCE_RANGES, N_APPEARANCE};
 use crate::pattern::WeavePattern;
+use crate::progress::Progress;
 use crate::shading::albedo::albedo;
 use crate::shading::bysdf::{attenuation, eval, LocalDirs, ShadeParams, VertexKind};
-use anyhow::Result;
 use glam::Vec3;
-use indicatif::{ProgressBar, ProgressStyle};
 use rand::rngs::SmallRng;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
-use std::path::Path;
 
 /// Counts from one stress run.
 #[derive(Clone, Debug, Default)]
@@ -171,24 +169,22 @@ fn merge(a: StressReport, b: StressReport) -> StressReport {
     }
 }
 
-/// Run `count` evaluations (split over rayon workers) and return the report.
-pub fn stress(count: u64, seed: u64, progress: bool) -> StressReport {
+/// Run `count` evaluations (split over rayon workers in 200 chunks, each reported to `progress`
+/// as one step of the stage `stress`) and return the report.
+pub fn stress(count: u64, seed: u64, progress: &dyn Progress) -> StressReport {
     let chunks = 200u64;
     let per = count.div_ceil(chunks);
-    let pb = if progress { ProgressBar::new(chunks) } else { ProgressBar::hidden() };
-    if let Ok(style) = ProgressStyle::with_template("stress {bar:30} {pos}/{len} chunks {elapsed_precise} eta {eta}") {
-        pb.set_style(style);
-    }
+    progress.begin("stress", chunks);
     let t0 = std::time::Instant::now();
     let mut rep = (0..chunks)
         .into_par_iter()
         .map(|c| {
             let r = chunk(seed.wrapping_mul(1_000_003).wrapping_add(c), per);
-            pb.inc(1);
+            progress.advance(1);
             r
         })
         .reduce(StressReport::default, merge);
-    pb.finish_and_clear();
+    progress.finish();
     // Re-estimate the worst configuration with 100× the samples: the maximum of many noisy
     // estimates is biased upwards.
     if let Some((a, v, kind)) = &rep.max_config {
@@ -201,34 +197,35 @@ pub fn stress(count: u64, seed: u64, progress: bool) -> StressReport {
     rep
 }
 
-/// `woven stress`: run and write the result section into `out` (markdown).
-pub fn run(count: u64, seed: u64, out: &Path) -> Result<()> {
-    let rep = stress(count, seed, true);
-    let md = format!(
-        "Command: `woven stress --count {count} --seed {seed}` ({:.1} s on {} threads)\n\n\
-         | what | count |\n|---|---|\n\
-         | BYSDF evaluations (f32) | {} |\n| derivative evaluations (30 partials each) | {} |\n\
-         | ply/fiber mappings and attenuations (zero radius, ray ∥ yarn) | {} |\n\
-         | **NaN/Inf values** | **{}** |\n| negative values | {} |\n\
-         | albedo configurations integrated (MIS, 6000 samples) | {} |\n\
-         | largest Monte-Carlo albedo among them (6000 samples) | {:.4} ± {:.4} |\n\
-         | **that configuration re-estimated with 600 000 samples** | **{}** |\n",
-        rep.seconds,
-        rayon::current_num_threads(),
-        rep.evals,
-        rep.deriv_evals,
-        rep.geometry_evals,
-        rep.non_finite,
-        rep.negative,
-        rep.albedo_configs,
-        rep.max_albedo.0,
-        rep.max_albedo.1,
-        rep.refined_max.map(|(m, e)| format!("{m:.4} ± {e:.4}")).unwrap_or_else(|| "-".into())
-    );
-    print!("{md}");
-    crate::bench::replace_section(out, "Numerical stress", &md)?;
-    if rep.non_finite > 0 || rep.negative > 0 {
-        anyhow::bail!("{} non-finite and {} negative values found", rep.non_finite, rep.negative);
+impl StressReport {
+    /// The markdown section of `docs/benchmarks.md` for a run of `count` evaluations with `seed`
+    /// (what `woven stress` prints and writes).
+    pub fn markdown(&self, count: u64, seed: u64) -> String {
+        format!(
+            "Command: `woven stress --count {count} --seed {seed}` ({:.1} s on {} threads)\n\n\
+             | what | count |\n|---|---|\n\
+             | BYSDF evaluations (f32) | {} |\n| derivative evaluations (30 partials each) | {} |\n\
+             | ply/fiber mappings and attenuations (zero radius, ray ∥ yarn) | {} |\n\
+             | **NaN/Inf values** | **{}** |\n| negative values | {} |\n\
+             | albedo configurations integrated (MIS, 6000 samples) | {} |\n\
+             | largest Monte-Carlo albedo among them (6000 samples) | {:.4} ± {:.4} |\n\
+             | **that configuration re-estimated with 600 000 samples** | **{}** |\n",
+            self.seconds,
+            rayon::current_num_threads(),
+            self.evals,
+            self.deriv_evals,
+            self.geometry_evals,
+            self.non_finite,
+            self.negative,
+            self.albedo_configs,
+            self.max_albedo.0,
+            self.max_albedo.1,
+            self.refined_max.map(|(m, e)| format!("{m:.4} ± {e:.4}")).unwrap_or_else(|| "-".into())
+        )
     }
-    Ok(())
+
+    /// Whether the run found no NaN/Inf and no negative value.
+    pub fn clean(&self) -> bool {
+        self.non_finite == 0 && self.negative == 0
+    }
 }

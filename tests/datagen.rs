@@ -8,6 +8,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use woven::datagen::generate::{image_path, label_path};
 use woven::datagen::{generate, GenerateOptions, Interrupted, Label, Manifest, Recipe};
+use woven::progress::NoProgress;
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -57,7 +58,7 @@ fn hashes(dir: &Path) -> BTreeMap<String, String> {
 
 fn reference() -> (tempfile::TempDir, BTreeMap<String, String>) {
     let d = tempfile::tempdir().unwrap();
-    let s = generate(&opts(d.path(), 1)).unwrap();
+    let s = generate(&opts(d.path(), 1), &NoProgress).unwrap();
     assert_eq!((s.rendered, s.skipped, s.present), (10, 0, 10));
     assert!(s.complete);
     let h = hashes(d.path());
@@ -157,7 +158,7 @@ fn recipe_errors_name_the_field() {
 fn same_files_whatever_the_thread_count() {
     let (a, ha) = reference();
     let b = tempfile::tempdir().unwrap();
-    generate(&opts(b.path(), 2)).unwrap();
+    generate(&opts(b.path(), 2), &NoProgress).unwrap();
     let hb = hashes(b.path());
     assert_eq!(ha, hb);
     // Everything is there: 10 images, 10 labels, the aggregates.
@@ -174,7 +175,7 @@ fn same_files_whatever_the_thread_count() {
     let c = tempfile::tempdir().unwrap();
     let mut o = opts(c.path(), 2);
     o.seed = Some(8);
-    generate(&o).unwrap();
+    generate(&o, &NoProgress).unwrap();
     assert_ne!(hashes(c.path()).get("images/000000.png"), ha.get("images/000000.png"));
     drop(a);
 }
@@ -186,12 +187,12 @@ fn union_of_shards_equals_the_full_set() {
     let d = tempfile::tempdir().unwrap();
     let mut o = opts(d.path(), 2);
     o.shard = (1, 2);
-    let s = generate(&o).unwrap();
+    let s = generate(&o, &NoProgress).unwrap();
     assert_eq!((s.rendered, s.present, s.complete), (5, 5, false));
     assert!(!d.path().join("labels.jsonl").exists(), "aggregates must wait for the whole set");
     assert!(label_path(d.path(), 1).exists() && !label_path(d.path(), 0).exists());
     o.shard = (0, 2);
-    let s = generate(&o).unwrap();
+    let s = generate(&o, &NoProgress).unwrap();
     assert_eq!((s.rendered, s.present, s.complete), (5, 10, true));
     assert_eq!(hashes(d.path()), ha);
 
@@ -200,16 +201,16 @@ fn union_of_shards_equals_the_full_set() {
     let f = tempfile::tempdir().unwrap();
     let mut o = opts(e.path(), 1);
     o.shard = (0, 2);
-    generate(&o).unwrap();
+    generate(&o, &NoProgress).unwrap();
     let mut o = opts(f.path(), 1);
     o.shard = (1, 2);
-    generate(&o).unwrap();
+    generate(&o, &NoProgress).unwrap();
     for sub in ["images", "labels"] {
         for ent in std::fs::read_dir(f.path().join(sub)).unwrap().flatten() {
             std::fs::copy(ent.path(), e.path().join(sub).join(ent.file_name())).unwrap();
         }
     }
-    let s = generate(&opts(e.path(), 2)).unwrap();
+    let s = generate(&opts(e.path(), 2), &NoProgress).unwrap();
     assert_eq!((s.rendered, s.skipped, s.complete), (0, 10, true));
     assert_eq!(hashes(e.path()), ha);
 }
@@ -220,7 +221,7 @@ fn interrupted_run_resumes_to_the_same_files() {
     let d = tempfile::tempdir().unwrap();
     let mut o = opts(d.path(), 1);
     o.stop_after = Some(4);
-    let e = generate(&o).unwrap_err();
+    let e = generate(&o, &NoProgress).unwrap_err();
     let i = e.downcast_ref::<Interrupted>().expect("an Interrupted error");
     assert_eq!((i.rendered, i.remaining), (4, 6));
     let labels = (0..10).filter(|&k| label_path(d.path(), k).exists()).count();
@@ -238,15 +239,15 @@ fn interrupted_run_resumes_to_the_same_files() {
     // A cancelled run renders nothing and leaves the directory as it was.
     let mut o = opts(d.path(), 2);
     o.cancel = Some(Arc::new(AtomicBool::new(true)));
-    let e = generate(&o).unwrap_err();
+    let e = generate(&o, &NoProgress).unwrap_err();
     assert_eq!(e.downcast_ref::<Interrupted>().unwrap().rendered, 0);
 
-    let s = generate(&opts(d.path(), 2)).unwrap();
+    let s = generate(&opts(d.path(), 2), &NoProgress).unwrap();
     assert_eq!((s.rendered, s.skipped, s.complete), (8, 2, true));
     assert!(!stale.exists(), "stale temporary file must be removed");
     assert_eq!(hashes(d.path()), ha);
     // A further rerun renders nothing and changes nothing.
-    let s = generate(&opts(d.path(), 2)).unwrap();
+    let s = generate(&opts(d.path(), 2), &NoProgress).unwrap();
     assert_eq!((s.rendered, s.skipped), (0, 10));
     assert_eq!(hashes(d.path()), ha);
 }
@@ -254,7 +255,7 @@ fn interrupted_run_resumes_to_the_same_files() {
 #[test]
 fn labels_round_trip_to_the_samples() {
     let d = tempfile::tempdir().unwrap();
-    generate(&opts(d.path(), 2)).unwrap();
+    generate(&opts(d.path(), 2), &NoProgress).unwrap();
     let r = tiny();
     let text = std::fs::read_to_string(d.path().join("labels.jsonl")).unwrap();
     let lines: Vec<&str> = text.lines().collect();
@@ -296,14 +297,21 @@ fn another_recipe_is_refused_in_the_same_directory() {
     let d = tempfile::tempdir().unwrap();
     let mut o = opts(d.path(), 2);
     o.count = Some(2);
-    generate(&o).unwrap();
+    generate(&o, &NoProgress).unwrap();
     o.seed = Some(99);
-    let e = format!("{:#}", generate(&o).unwrap_err());
-    assert!(e.contains("another recipe or seed"), "{e}");
+    let e = format!("{:#}", generate(&o, &NoProgress).unwrap_err());
+    assert!(e.contains("another recipe or seed") && e.contains("seed is"), "{e}");
+    assert!(!e.contains("px"), "only the seed differs: {e}");
+    // Another image size is named as such, not blamed on the seed.
+    o.seed = None;
+    o.size = Some(48);
+    let e = format!("{:#}", generate(&o, &NoProgress).unwrap_err());
+    assert!(e.contains("images are 32 px (this run: 48 px; --size)"), "{e}");
+    assert!(!e.contains("seed is"), "{e}");
     // A larger count extends the same dataset.
     let mut o = opts(d.path(), 2);
     o.count = Some(3);
-    let s = generate(&o).unwrap();
+    let s = generate(&o, &NoProgress).unwrap();
     assert_eq!((s.rendered, s.skipped), (1, 2));
 }
 
@@ -319,7 +327,7 @@ fn measure_speed_and_noise() {
     let mut o = GenerateOptions::new(&out, Recipe::default());
     o.count = Some(n);
     o.threads = Some(threads);
-    let s = generate(&o).unwrap();
+    let s = generate(&o, &NoProgress).unwrap();
     println!(
         "speed: {n} images of 128 px, spp 4, {threads} threads: {:.2} images/s (wall {:.1} s) -> 2000 images in {:.0} s",
         s.images_per_s,
@@ -384,30 +392,31 @@ fn measure_speed_and_noise() {
 }
 
 #[test]
-fn command_entry_point_and_shard_parsing() {
-    use woven::datagen::cmd::parse_shard;
-    assert_eq!(parse_shard("1/4"), Ok((1, 4)));
-    assert!(parse_shard("4/4").is_err() && parse_shard("0/0").is_err() && parse_shard("x").is_err());
+fn command_entry_point() {
     let d = tempfile::tempdir().unwrap();
     let recipe = d.path().join("recipe.toml");
     std::fs::write(&recipe, tiny().to_toml()).unwrap();
-    let args = woven::datagen::GenerateArgs {
-        count: Some(3),
-        out: d.path().join("set"),
-        recipe: recipe.clone(),
-        size: Some(24),
-        seed: None,
-        shard: None,
-        exr: true,
-        threads: Some(2),
+    let set = d.path().join("set");
+    let run = || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_woven"))
+            .args(["generate", "--count", "3", "--size", "24", "--exr", "--threads", "2", "--out"])
+            .arg(&set)
+            .arg("--recipe")
+            .arg(&recipe)
+            .env("RUST_BACKTRACE", "0")
+            .output()
+            .unwrap()
     };
-    woven::datagen::run(&args).unwrap();
-    let m: Manifest = serde_json::from_slice(&std::fs::read(d.path().join("set/manifest.json")).unwrap()).unwrap();
+    let out = run();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let m: Manifest = serde_json::from_slice(&std::fs::read(set.join("manifest.json")).unwrap()).unwrap();
     assert_eq!((m.count, m.image_size, m.exr), (3, 24, true));
-    let exr = woven::Image::load(&d.path().join("set/images/000002.exr"), 8).unwrap();
+    let exr = woven::Image::load(&set.join("images/000002.exr"), 8).unwrap();
     assert_eq!(exr.width, 24);
     // A bad recipe file fails with the field named.
     std::fs::write(&recipe, tiny().to_toml().replace("random_share = 0.2", "random_share = 2.0")).unwrap();
-    let e = format!("{:#}", woven::datagen::run(&args).unwrap_err());
+    let out = run();
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
     assert!(e.contains("patterns.random_share"), "{e}");
 }

@@ -8,13 +8,12 @@
 //! on the renderer's yarn curves (after undoing the tile offset), the XML is well-formed, the view is
 //! covered, and bad options are refused.
 
-use clap::Parser;
 use glam::Vec3;
 use rand::prelude::*;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
 use std::path::Path;
-use woven::export::{bspline_point, export, run_export, ExportArgs, ExportOptions};
+use woven::export::{bspline_point, export, ExportOptions};
 use woven::geometry::yarn::{Family, YarnSet};
 use woven::noise::{residual, NoiseError, NoiseModel};
 use woven::params::{ClothParams, ParamFile};
@@ -659,35 +658,28 @@ fn export_refuses_bad_options_and_cli_works() {
     assert!(bad(ExportOptions { samples_per_cell: 1, ..Default::default() }).contains("samples per cell"));
     assert!(bad(ExportOptions { ring: 2, ..Default::default() }).contains("ring"));
 
-    #[derive(Parser)]
-    struct Cli {
-        #[command(flatten)]
-        args: ExportArgs,
-    }
+    // The command line (the clap types live in the binary): flags reach the library, bad repeat
+    // counts are refused by the parser, a missing file is named.
     let pf = dir.path().join("p.json");
     params.save(&pf).unwrap();
     let out = dir.path().join("out");
-    let cli = Cli::try_parse_from([
-        "export",
-        pf.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--repeats",
-        "2x1",
-        "--samples-per-cell",
-        "4",
-        "--plies",
-    ])
-    .unwrap();
-    assert_eq!(cli.args.repeats, Some([2, 1]));
-    run_export(&cli.args).unwrap();
+    let woven = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_woven")).args(args).env("RUST_BACKTRACE", "0").output().unwrap()
+    };
+    let (pfs, outs) = (pf.to_str().unwrap(), out.to_str().unwrap());
+    let r = woven(&["export", pfs, "--out", outs, "--repeats", "2x1", "--samples-per-cell", "4", "--plies"]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(String::from_utf8_lossy(&r.stdout).contains("exported 2x1 repeats"));
     for f in ["yarns.ply", "tubes.ply", "plies.ply", "curves_weft.txt", "curves_warp.txt", "scene.xml"] {
         assert!(out.join(f).is_file(), "{f}");
     }
-    assert!(Cli::try_parse_from(["export", "p.json", "--repeats", "0"]).is_err());
-    assert!(Cli::try_parse_from(["export", "p.json", "--repeats", "2x"]).is_err());
-    let missing = Cli::try_parse_from(["export", "/nonexistent/p.json"]).unwrap();
-    let e = format!("{:#}", run_export(&missing.args).unwrap_err());
+    for bad in ["0", "2x"] {
+        let r = woven(&["export", pfs, "--out", outs, "--repeats", bad]);
+        assert!(!r.status.success() && String::from_utf8_lossy(&r.stderr).contains("--repeats"), "{bad}");
+    }
+    let r = woven(&["export", "/nonexistent/p.json", "--out", outs]);
+    assert!(!r.status.success());
+    let e = String::from_utf8_lossy(&r.stderr);
     assert!(e.contains("/nonexistent/p.json"), "{e}");
 }
 

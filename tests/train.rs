@@ -5,6 +5,7 @@ use std::process::Command;
 use woven::datagen::{generate, GenerateOptions, Recipe};
 use woven::net::{NetSpec, PreEstimator, TrainConfig};
 use woven::pre::{load_dataset, output_specs};
+use woven::progress::NoProgress;
 
 #[test]
 fn tiny_generated_set_trains_and_predicts() {
@@ -14,19 +15,12 @@ fn tiny_generated_set_trains_and_predicts() {
     opts.count = Some(32);
     opts.size = Some(32);
     opts.recipe.image.spp = 1;
-    generate(&opts).unwrap();
-    let (classes, samples, _) = load_dataset(&data).unwrap();
+    generate(&opts, &NoProgress).unwrap();
+    let (classes, samples, _) = load_dataset(&data, &NoProgress).unwrap();
     assert_eq!(samples.len(), 32);
     assert!(samples.iter().all(|s| s.targets.len() == output_specs().len()));
     let spec = NetSpec::new(32, classes, output_specs());
-    let cfg = TrainConfig {
-        epochs: 12,
-        batch_size: 16,
-        lr: 3e-3,
-        val_fraction: 0.0,
-        progress: false,
-        ..TrainConfig::default()
-    };
+    let cfg = TrainConfig { epochs: 12, batch_size: 16, lr: 3e-3, val_fraction: 0.0, ..TrainConfig::default() };
     let work = dir.path().join("run");
     let report = woven::net::train(&samples, &spec, &cfg, &work, false).unwrap();
     let first = report.epochs.first().unwrap().train_loss;

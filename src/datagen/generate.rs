@@ -13,9 +13,9 @@ use super::recipe::{PatternClass, Recipe};
 use super::sample::{target_names, Label, Sample};
 use super::sheet::contact_sheet;
 use crate::io::write_atomic;
+use crate::progress::Progress;
 use crate::render::{Prepared, RenderOptions};
 use anyhow::{anyhow, bail, Context, Result};
-use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -43,8 +43,6 @@ pub struct GenerateOptions {
     pub exr: bool,
     /// Worker threads (`None`: all cores).
     pub threads: Option<usize>,
-    /// Show a progress bar (or plain lines when stderr is not a terminal) and messages.
-    pub progress: bool,
     /// Stop dispatching after this many images were rendered (simulates an interruption).
     pub stop_after: Option<usize>,
     /// Set to `true` (e.g. by a Ctrl-C handler) to stop dispatching new images.
@@ -52,7 +50,7 @@ pub struct GenerateOptions {
 }
 
 impl GenerateOptions {
-    /// Defaults: whole set, no overrides, all cores, quiet.
+    /// Defaults: whole set, no overrides, all cores.
     pub fn new(out: impl Into<PathBuf>, recipe: Recipe) -> Self {
         GenerateOptions {
             out: out.into(),
@@ -63,7 +61,6 @@ impl GenerateOptions {
             shard: (0, 1),
             exr: false,
             threads: None,
-            progress: false,
             stop_after: None,
             cancel: None,
         }
@@ -170,16 +167,54 @@ pub struct Manifest {
     pub timing: String,
 }
 
-#[derive(Serialize, Deserialize, PartialEq)]
+/// `dataset.json`: what makes two runs the same dataset (`image_size` is informative: it is part
+/// of the recipe hash, and kept apart so a mismatch can be explained; absent in older sets).
+#[derive(Serialize, Deserialize)]
 struct Identity {
     seed: u64,
     recipe_sha256_without_count: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    image_size: Option<u32>,
+}
+
+impl Identity {
+    fn same_dataset(&self, other: &Identity) -> bool {
+        self.seed == other.seed && self.recipe_sha256_without_count == other.recipe_sha256_without_count
+    }
 }
 
 fn identity(recipe: &Recipe) -> Identity {
     let mut r = recipe.clone();
     r.count = 0;
-    Identity { seed: recipe.seed, recipe_sha256_without_count: sha256_hex(r.to_toml().as_bytes()) }
+    Identity {
+        seed: recipe.seed,
+        recipe_sha256_without_count: sha256_hex(r.to_toml().as_bytes()),
+        image_size: Some(recipe.image.size),
+    }
+}
+
+/// Why a run does not match the dataset already in `dir` (identity `old`): the seed, the image
+/// size (from `dataset.json` or, for older sets, `manifest.json`), or else the recipe itself.
+fn mismatch(dir: &Path, old: &Identity, recipe: &Recipe) -> String {
+    let mut why = Vec::new();
+    if old.seed != recipe.seed {
+        why.push(format!("its seed is {} (this run: {}; --seed)", old.seed, recipe.seed));
+    }
+    let old_size = old.image_size.or_else(|| {
+        let text = std::fs::read_to_string(dir.join("manifest.json")).ok()?;
+        serde_json::from_str::<serde_json::Value>(&text).ok()?["image_size"].as_u64().map(|s| s as u32)
+    });
+    if let Some(s) = old_size.filter(|&s| s != recipe.image.size) {
+        why.push(format!("its images are {s} px (this run: {} px; --size)", recipe.image.size));
+    }
+    if why.is_empty() {
+        why.push("it was made from another recipe (a different recipe file, or one edited since)".into());
+    }
+    format!(
+        "{} holds a dataset from another recipe or seed: {}; use another --out, or the same recipe, size and seed",
+        dir.display(),
+        why.join(", and ")
+    )
 }
 
 /// Remove temporary files left by a crashed run (those of live processes are kept).
@@ -300,8 +335,10 @@ pub fn finalize(dir: &Path, recipe: &Recipe) -> Result<(usize, bool)> {
     Ok((present, true))
 }
 
-/// Generate (or resume, or extend) the dataset described by `opts`.
-pub fn generate(opts: &GenerateOptions) -> Result<Summary> {
+/// Generate (or resume, or extend) the dataset described by `opts`. Progress: a message with the
+/// plan (images, already done, to render, threads), then the stage `generate` with one step per
+/// rendered image.
+pub fn generate(opts: &GenerateOptions, progress: &dyn Progress) -> Result<Summary> {
     let start = Instant::now();
     let (shard_i, shard_k) = opts.shard;
     if shard_k == 0 || shard_i >= shard_k {
@@ -320,21 +357,19 @@ pub fn generate(opts: &GenerateOptions) -> Result<Summary> {
         Ok(text) => {
             let old: Identity =
                 serde_json::from_str(&text).with_context(|| format!("corrupt {}", id_path.display()))?;
-            if old != id {
-                bail!(
-                    "{} holds a dataset from another recipe or seed (seed {} vs {}); use another --out or the same recipe, size and seed",
-                    dir.display(),
-                    old.seed,
-                    id.seed
-                );
+            if !old.same_dataset(&id) {
+                bail!("{}", mismatch(dir, &old, &recipe));
             }
         }
         Err(_) => write_atomic(&id_path, (serde_json::to_string_pretty(&id)? + "\n").as_bytes())?,
     }
     let stale = remove_stale_temps(dir)?;
 
-    let threads = opts.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads.max(1)).build()?;
+    let threads = opts
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1))
+        .clamp(1, crate::render::MAX_THREADS);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     let indices: Vec<usize> = (shard_i..recipe.count).step_by(shard_k).collect();
 
     // Check what is already finished (label matches the sample, image decodes).
@@ -359,22 +394,15 @@ pub fn generate(opts: &GenerateOptions) -> Result<Summary> {
             todo.push((s, line));
         }
     }
-    if opts.progress {
-        eprintln!(
-            "generate: {} images (shard {shard_i}/{shard_k}: {}) into {}; {skipped} already done, {} to render, {threads} threads{}",
-            recipe.count,
-            indices.len(),
-            dir.display(),
-            todo.len(),
-            if stale > 0 { format!("; removed {stale} stale temporary files") } else { String::new() }
-        );
-    }
-
-    let pb = if opts.progress { ProgressBar::new(todo.len() as u64) } else { ProgressBar::hidden() };
-    pb.set_style(ProgressStyle::with_template(
-        "{bar:30} {pos}/{len} {per_sec} elapsed {elapsed_precise} eta {eta_precise} {msg}",
-    )?);
-    let plain = opts.progress && pb.is_hidden();
+    progress.message(&format!(
+        "generate: {} images (shard {shard_i}/{shard_k}: {}) into {}; {skipped} already done, {} to render, {threads} threads{}",
+        recipe.count,
+        indices.len(),
+        dir.display(),
+        todo.len(),
+        if stale > 0 { format!("; removed {stale} stale temporary files") } else { String::new() }
+    ));
+    progress.begin("generate", todo.len() as u64);
     let stop = AtomicBool::new(false);
     let rendered = AtomicUsize::new(0);
     let first_err: Mutex<Option<anyhow::Error>> = Mutex::new(None);
@@ -394,21 +422,13 @@ pub fn generate(opts: &GenerateOptions) -> Result<Summary> {
                 return;
             }
             let n = rendered.fetch_add(1, Ordering::SeqCst) + 1;
-            pb.inc(1);
-            if plain && n_todo >= 10 && n.is_multiple_of(n_todo.div_ceil(10)) {
-                let t = render_start.elapsed().as_secs_f64();
-                let rate = n as f64 / t.max(1e-9);
-                eprintln!(
-                    "generate: {n}/{n_todo} rendered, {rate:.2} images/s, eta {:.0} s",
-                    (n_todo - n) as f64 / rate.max(1e-9)
-                );
-            }
+            progress.advance(1);
             if opts.stop_after.is_some_and(|k| n >= k) {
                 stop.store(true, Ordering::SeqCst);
             }
         })
     });
-    pb.finish_and_clear();
+    progress.finish();
     if let Some(e) = first_err.into_inner().expect("error slot") {
         return Err(e);
     }

@@ -346,7 +346,8 @@ impl Recipe {
 
     /// Read, parse and validate a recipe file.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read recipe {}", path.display()))?;
+        let text = crate::io::read_text_capped(path, crate::io::MAX_TEXT_FILE_BYTES)
+            .with_context(|| format!("cannot read recipe {}", path.display()))?;
         Self::from_str(&text).with_context(|| format!("in recipe {}", path.display()))
     }
 

@@ -158,6 +158,9 @@ impl PreEstimator {
             let data = varmap.data().lock().expect("varmap lock poisoned");
             for (name, view) in &views {
                 let vals = decode_f32(view).map_err(|e| corrupt(e.to_string()))?;
+                if let Some(i) = vals.iter().position(|v| !v.is_finite()) {
+                    return Err(corrupt(format!("tensor {name} holds a non-finite weight ({}) at index {i}", vals[i])));
+                }
                 data[name].set(&Tensor::from_vec(vals, view.shape(), &Device::Cpu)?)?;
             }
         }

@@ -15,11 +15,11 @@ use super::infer::{decode_f32, write_safetensors_atomic};
 use super::model::{self, loss, NetOutput, PreNet};
 use super::report::{EpochStats, OutputError, TrainReport};
 use super::{check_image, preprocess, FeatureType, NetSpec, FORMAT_MODEL, META_FORMAT, META_METRICS, META_SPEC};
+use crate::progress::{NoProgress, Progress};
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor, Var};
 use candle_nn::VarMap;
 use image::Rgb32FImage;
-use indicatif::{ProgressBar, ProgressStyle};
 use rand::prelude::*;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -90,8 +90,6 @@ pub struct TrainConfig {
     pub features: Option<FeatureType>,
     /// Weight of the L1 term relative to the cross-entropy.
     pub l1_weight: f64,
-    /// Show a progress bar (and a plain line per epoch when stderr is not a terminal).
-    pub progress: bool,
     /// Stop this call after this many epochs in total (the schedule still spans `epochs`);
     /// continue later with `resume`. For time budgets and interrupted runs.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -111,7 +109,6 @@ impl Default for TrainConfig {
             val_fraction: 0.1,
             features: None,
             l1_weight: 1.0,
-            progress: true,
             stop_after: None,
         }
     }
@@ -404,15 +401,36 @@ fn load_checkpoint(path: &Path, opt: &mut AdamW, spec: &NetSpec) -> Result<Check
 /// and `loss.png`. With `resume`, training continues from `out/checkpoint.safetensors` if it
 /// exists (it must have been made with the same spec and data).
 pub fn train(samples: &[Sample], spec: &NetSpec, cfg: &TrainConfig, out: &Path, resume: bool) -> Result<TrainReport> {
-    let mut pool = rayon::ThreadPoolBuilder::new();
-    if cfg.threads > 0 {
-        pool = pool.num_threads(cfg.threads);
-    }
-    let pool = pool.build()?;
-    pool.install(|| train_inner(samples, spec, cfg, out, resume))
+    train_with_progress(samples, spec, cfg, out, resume, &NoProgress)
 }
 
-fn train_inner(samples: &[Sample], spec: &NetSpec, cfg: &TrainConfig, out: &Path, resume: bool) -> Result<TrainReport> {
+/// [`train()`], reporting to `progress`: one stage per epoch (`epoch k/n`, one step per batch,
+/// the running loss as the message, the epoch's summary as the last message before the stage
+/// finishes), and notes about resuming as messages outside any stage.
+pub fn train_with_progress(
+    samples: &[Sample],
+    spec: &NetSpec,
+    cfg: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    progress: &dyn Progress,
+) -> Result<TrainReport> {
+    let mut pool = rayon::ThreadPoolBuilder::new();
+    if cfg.threads > 0 {
+        pool = pool.num_threads(cfg.threads.min(crate::render::MAX_THREADS));
+    }
+    let pool = pool.build()?;
+    pool.install(|| train_inner(samples, spec, cfg, out, resume, progress))
+}
+
+fn train_inner(
+    samples: &[Sample],
+    spec: &NetSpec,
+    cfg: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    progress: &dyn Progress,
+) -> Result<TrainReport> {
     let t0 = Instant::now();
     let mut spec = spec.clone();
     if let Some(f) = cfg.features {
@@ -449,20 +467,13 @@ fn train_inner(samples: &[Sample], spec: &NetSpec, cfg: &TrainConfig, out: &Path
         if meta.fingerprint != fp {
             bail!("checkpoint {} was made with different training data", ckpt.display());
         }
-        let same = TrainConfig {
-            threads: cfg.threads,
-            progress: cfg.progress,
-            stop_after: cfg.stop_after,
-            ..meta.config.clone()
-        };
-        if same != *cfg && cfg.progress {
-            eprintln!("note: resuming with a training config that differs from the checkpoint's");
+        let same = TrainConfig { threads: cfg.threads, stop_after: cfg.stop_after, ..meta.config.clone() };
+        if same != *cfg {
+            progress.message("note: resuming with a training config that differs from the checkpoint's");
         }
         start_epoch = meta.epoch;
         history = meta.history;
-        if cfg.progress {
-            eprintln!("resuming from {} after epoch {start_epoch}", ckpt.display());
-        }
+        progress.message(&format!("resuming from {} after epoch {start_epoch}", ckpt.display()));
     }
     let steps_per_epoch = train_idx.len().div_ceil(cfg.batch_size);
     let end_epoch = cfg.stop_after.map_or(cfg.epochs, |s| s.min(cfg.epochs));
@@ -471,12 +482,7 @@ fn train_inner(samples: &[Sample], spec: &NetSpec, cfg: &TrainConfig, out: &Path
         let mut order = train_idx.clone();
         let mut rng = StdRng::seed_from_u64(splitmix64(cfg.seed ^ splitmix64(epoch as u64 + 1)));
         order.shuffle(&mut rng);
-        let pb = if cfg.progress { ProgressBar::new(steps_per_epoch as u64) } else { ProgressBar::hidden() };
-        pb.set_style(
-            ProgressStyle::with_template("epoch {prefix} {bar:30} {pos}/{len} {elapsed_precise} eta {eta} {msg}")?
-                .progress_chars("=> "),
-        );
-        pb.set_prefix(format!("{}/{}", epoch + 1, cfg.epochs));
+        progress.begin(&format!("epoch {}/{}", epoch + 1, cfg.epochs), steps_per_epoch as u64);
         let (mut sum, mut count) = (0.0f64, 0usize);
         let mut lr = cfg.lr;
         for (b, chunk) in order.chunks(cfg.batch_size).enumerate() {
@@ -490,8 +496,8 @@ fn train_inner(samples: &[Sample], spec: &NetSpec, cfg: &TrainConfig, out: &Path
             }
             sum += v as f64 * chunk.len() as f64;
             count += chunk.len();
-            pb.inc(1);
-            pb.set_message(format!("loss {:.4} (ce {:.3} l1 {:.3})", sum / count as f64, l.ce, l.l1));
+            progress.advance(1);
+            progress.message(&format!("loss {:.4} (ce {:.3} l1 {:.3})", sum / count as f64, l.ce, l.l1));
         }
         let train_loss = (sum / count as f64) as f32;
         let ev = if val_idx.is_empty() { None } else { Some(evaluate(&net, &data, &val_idx, cfg)?) };
@@ -503,14 +509,8 @@ fn train_inner(samples: &[Sample], spec: &NetSpec, cfg: &TrainConfig, out: &Path
             lr,
             seconds: te.elapsed().as_secs_f64(),
         };
-        let line = stats.summary(cfg.epochs);
-        if pb.is_hidden() {
-            if cfg.progress {
-                eprintln!("{line}");
-            }
-        } else {
-            pb.finish_with_message(line);
-        }
+        progress.message(&stats.summary(cfg.epochs));
+        progress.finish();
         history.push(stats);
         let meta = CheckpointMeta {
             epoch: epoch + 1,
@@ -625,15 +625,7 @@ pub(crate) mod tests {
     }
 
     pub(crate) fn tiny_cfg(epochs: usize) -> TrainConfig {
-        TrainConfig {
-            epochs,
-            batch_size: 8,
-            lr: 3e-3,
-            seed: 5,
-            val_fraction: 0.0,
-            progress: false,
-            ..Default::default()
-        }
+        TrainConfig { epochs, batch_size: 8, lr: 3e-3, seed: 5, val_fraction: 0.0, ..Default::default() }
     }
 
     fn weights(path: &Path) -> Vec<(String, Vec<u8>)> {

@@ -62,9 +62,46 @@ pub enum PrepError {
         /// Row of the first offending pixel.
         y: u32,
     },
+    /// Rectification (rotation to the yarn axes, then the largest axis-aligned crop) left less
+    /// than [`MIN_SIZE`] of an input that was large enough, e.g. a long thin strip at an angle.
+    #[error(
+        "image too small: the {in_width}x{in_height} px input leaves only {width}x{height} px after rotating it by {angle_deg:.1}° to the yarn axes and cropping (need at least {min} px per side); use a less elongated crop, or one cut along the yarns"
+    )]
+    TooSmallAfterRectify {
+        /// Input width in pixels.
+        in_width: u32,
+        /// Input height in pixels.
+        in_height: u32,
+        /// Width left after rectification.
+        width: u32,
+        /// Height left after rectification.
+        height: u32,
+        /// The rotation that was applied, degrees.
+        angle_deg: f32,
+        /// The minimum side.
+        min: u32,
+    },
     /// Uniform image, random noise, or anything else without a periodic grid of yarns.
-    #[error("no periodic yarn structure found")]
+    #[error(
+        "no periodic yarn structure found: the image shows no regular grid of yarns (uniform, noise, or out of focus); try a sharp, evenly lit close-up showing at least 2 repeats of the weave each way"
+    )]
     NoStructure,
+    /// Neither axis repeats (period strength below [`PrepOptions::min_period_corr`]) and the
+    /// yarn grid is too weak to take the whole image as a single repeat: what random noise gives.
+    #[error(
+        "no periodic yarn structure found: the pattern does not repeat inside the image (period strength {:.2} along x, {:.2} along y; a repeat needs {min_period:.2}) and the yarn grid is too weak ({:.2}; a single repeat needs {min_grid:.2}); try a sharp close-up showing at least 2 repeats of the weave each way, or fit a crop of exactly one repeat with `woven fit --no-prep --grid NExNA`",
+        period_strength[0], period_strength[1], grid_strength[0].min(grid_strength[1])
+    )]
+    NoRepeat {
+        /// DMF correlation of the best repeat along x and y (0: none).
+        period_strength: [f32; 2],
+        /// Periodicity strength of the integral projections along x and y.
+        grid_strength: [f32; 2],
+        /// [`PrepOptions::min_period_corr`].
+        min_period: f32,
+        /// [`PrepOptions::min_single_repeat_structure`].
+        min_grid: f32,
+    },
 }
 
 /// Options of [`prepare`].
@@ -83,6 +120,12 @@ pub struct PrepOptions {
     pub min_structure: f32,
     /// Minimum DMF correlation of a copy for it to count as a repeat (else: whole image).
     pub min_period_corr: f32,
+    /// When no repeat is found along either axis, the image is taken as one repeat only if the
+    /// grid strength of both axes reaches this; below it the image is rejected with
+    /// [`PrepError::NoRepeat`]. Measured on forward-model renders and noise: single repeats whose
+    /// grid prep recovers exactly score ≥ 0.84 on both axes; white, blurred and coloured noise of
+    /// 64–400 px score at most 0.64 on their weaker axis (and then yield random 2–6 yarn grids).
+    pub min_single_repeat_structure: f32,
     /// Smallest yarn pitch considered, pixels.
     pub min_pitch: f32,
 }
@@ -96,6 +139,7 @@ impl Default for PrepOptions {
             kpca: KpcaParams::default(),
             min_structure: 0.35,
             min_period_corr: 0.7,
+            min_single_repeat_structure: 0.8,
             min_pitch: 4.0,
         }
     }
@@ -198,9 +242,10 @@ fn crop_axis(phase: f32, pitch: f32, n: usize, extent: u32) -> (u32, u32) {
 
 /// Runs the whole preparation stage on a linear RGB image. See the module docs.
 ///
-/// Errors: [`PrepError::TooSmall`] (< 32 px), [`PrepError::NonFinite`], and
-/// [`PrepError::NoStructure`] ("no periodic yarn structure found") for uniform images, noise or
-/// anything whose integral projections are not periodic.
+/// Errors: [`PrepError::TooSmall`] (< 32 px) and [`PrepError::TooSmallAfterRectify`],
+/// [`PrepError::NonFinite`], and — both starting with "no periodic yarn structure found" —
+/// [`PrepError::NoStructure`] for uniform images or anything whose integral projections are not
+/// periodic, [`PrepError::NoRepeat`] for images (noise) with neither a repeat nor a strong grid.
 pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepError> {
     check_input(img)?;
     // 1. Rectification.
@@ -217,7 +262,15 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let r = &rect.image;
     let (w, h) = r.dimensions();
     if w < MIN_SIZE || h < MIN_SIZE {
-        return Err(PrepError::TooSmall { width: w, height: h, min: MIN_SIZE });
+        let (in_width, in_height) = img.dimensions();
+        return Err(PrepError::TooSmallAfterRectify {
+            in_width,
+            in_height,
+            width: w,
+            height: h,
+            angle_deg: rect.angle_deg,
+            min: MIN_SIZE,
+        });
     }
     // 2. First pitch estimate and periodicity strength (before any regularization, which
     //    could impose structure on noise).
@@ -245,6 +298,17 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         1.5 * ay0.pitch as f64,
         opts.min_period_corr as f64,
     );
+    // Without a repeat on either axis the whole image is one repeat, which only a strong yarn grid
+    // justifies: noise passes the first structure test often enough (its integral projections
+    // have some autocorrelation at any lag) and would otherwise come out as a small random grid.
+    if !per_x.repeated && !per_y.repeated && ax0.strength.min(ay0.strength) < opts.min_single_repeat_structure {
+        return Err(PrepError::NoRepeat {
+            period_strength: [per_x.strength, per_y.strength],
+            grid_strength: [ax0.strength, ay0.strength],
+            min_period: opts.min_period_corr,
+            min_grid: opts.min_single_repeat_structure,
+        });
+    }
     // 5. Kernel PCA.
     let regularized = if opts.regularize {
         regularize::kpca_tiles(&blurred, per_x.period, per_y.period, &opts.kpca)
@@ -342,6 +406,22 @@ impl Prepared {
     /// Everything except the images, as pretty JSON (for `prep.json`).
     pub fn to_json(&self) -> String {
         serde_json::to_string_pretty(self).expect("Prepared serializes")
+    }
+
+    /// Write the outputs of `woven prep` into `dir` (created if needed): `rectified.png`,
+    /// `regularized.png`, `grid.png` ([`Prepared::grid_overlay`]), `crop.png` (the minimum-pattern
+    /// crop of the regularized image) and `prep.json`; each file atomically.
+    pub fn save(&self, dir: &std::path::Path) -> anyhow::Result<()> {
+        use crate::image_io::Image;
+        use anyhow::Context;
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        Image::from_rgb32f(&self.rectified).save_png(&dir.join("rectified.png"))?;
+        let reg = Image::from_rgb32f(&self.regularized);
+        reg.save_png(&dir.join("regularized.png"))?;
+        Image::from_rgb32f(&self.grid_overlay()).save_png(&dir.join("grid.png"))?;
+        reg.crop(self.crop.x, self.crop.y, self.crop.w, self.crop.h).save_png(&dir.join("crop.png"))?;
+        let json = dir.join("prep.json");
+        crate::io::write_atomic(&json, self.to_json().as_bytes()).with_context(|| format!("writing {}", json.display()))
     }
 }
 
@@ -526,18 +606,21 @@ mod tests {
 
     #[test]
     fn uniform_and_noise_are_rejected() {
-        let msg = "no periodic yarn structure found";
+        let msg = "no periodic yarn structure found: ";
         let uni = Rgb32FImage::from_pixel(128, 96, image::Rgb([0.4, 0.5, 0.6]));
         let e = prepare(&uni, &PrepOptions::default()).unwrap_err();
-        assert_eq!(e.to_string(), msg);
+        assert_eq!(e, PrepError::NoStructure);
+        assert!(e.to_string().starts_with(msg) && e.to_string().contains("try "), "{e}");
         for seed in 0..4u64 {
-            let base = Rgb32FImage::from_pixel(200, 180, image::Rgb([0.5, 0.5, 0.5]));
-            let noise = add_noise(&base, 0.2, seed);
-            let e = prepare(&noise, &PrepOptions::default()).unwrap_err();
-            assert_eq!(e.to_string(), msg, "seed {seed}");
-            // Blurred noise (spatially correlated) too.
-            let e = prepare(&blur_rgb(&noise, 2.0), &PrepOptions::default()).unwrap_err();
-            assert_eq!(e.to_string(), msg, "blurred, seed {seed}");
+            for size in [(200, 180), (64, 64), (96, 128)] {
+                let base = Rgb32FImage::from_pixel(size.0, size.1, image::Rgb([0.5, 0.5, 0.5]));
+                let noise = add_noise(&base, 0.2, seed);
+                let e = prepare(&noise, &PrepOptions::default()).unwrap_err();
+                assert!(e.to_string().starts_with(msg), "seed {seed} {size:?}: {e}");
+                // Blurred noise (spatially correlated) too.
+                let e = prepare(&blur_rgb(&noise, 2.0), &PrepOptions::default()).unwrap_err();
+                assert!(e.to_string().starts_with(msg), "blurred, seed {seed} {size:?}: {e}");
+            }
         }
     }
 
@@ -545,6 +628,11 @@ mod tests {
     fn bad_inputs() {
         let small = Rgb32FImage::new(31, 100);
         assert!(matches!(prepare(&small, &PrepOptions::default()), Err(PrepError::TooSmall { width: 31, .. })));
+        // A long strip at an angle: the message names the input's own size, not only what is left.
+        let strip = render_rotated(&twill22(), 12.0, 2000, 40, 10.0);
+        let e = prepare(&strip, &PrepOptions::default()).unwrap_err();
+        assert!(matches!(e, PrepError::TooSmallAfterRectify { in_width: 2000, in_height: 40, .. }), "{e:?}");
+        assert!(e.to_string().contains("2000x40 px input"), "{e}");
         let mut img = render_flat(&plain(), 12.0, 64, 64);
         img.put_pixel(5, 7, image::Rgb([0.1, f32::NAN, 0.2]));
         assert_eq!(prepare(&img, &PrepOptions::default()).unwrap_err(), PrepError::NonFinite { x: 5, y: 7 });

@@ -15,6 +15,7 @@ use crate::geometry::yarn::YarnSet;
 use crate::image_io::Image;
 use crate::params::{Appearance, BodyTexture, ClothParams, N_APPEARANCE};
 use crate::pattern::WeavePattern;
+use crate::progress::{NoProgress, Progress};
 use crate::scene::Scene;
 use crate::shading::bysdf::ShadeParams;
 use crate::shading::real::{Dual, Real};
@@ -130,10 +131,18 @@ impl Prepared {
 
     /// Trace and shade directly.
     pub fn render(&self, a: &Appearance) -> Image {
+        self.render_with_progress(a, &NoProgress)
+    }
+
+    /// [`Prepared::render`], reporting each finished image row to `progress` (stage `render`, one
+    /// step per row). The image is the same bit for bit: rows are independent and each sample's
+    /// random numbers depend only on its pixel and index.
+    pub fn render_with_progress(&self, a: &Appearance, progress: &dyn Progress) -> Image {
         let (wx, wy, w, h) = self.window;
         let sp = ShadeParams::new(a);
         let tracer = self.tracer(a);
         let mut data = vec![[0.0f32; 3]; (w * h) as usize];
+        progress.begin("render", h as u64);
         data.par_chunks_mut(w as usize).enumerate().for_each(|(row, out)| {
             let mut buf = PathBuf::default();
             let y = wy + row as u32;
@@ -150,7 +159,9 @@ impl Prepared {
                 }
                 *px = acc.map(|v| v * self.exposure / self.spp as f32);
             }
+            progress.advance(1);
         });
+        progress.finish();
         Image::new(w, h, data)
     }
 
@@ -334,13 +345,60 @@ impl PathCache {
 
 /// Render `cloth` in `scene` (convenience: prepare + render, optionally on `threads` threads).
 pub fn render(cloth: &ClothParams, scene: &Scene, opts: &RenderOptions) -> Image {
-    run_in_pool(opts.threads, || Prepared::new(cloth, scene, opts).render(&cloth.appearance))
+    render_with_progress(cloth, scene, opts, &NoProgress)
 }
 
-/// Run `f` in a rayon pool of `threads` threads (or the global pool).
+/// [`render`], reporting finished rows to `progress` (see [`Prepared::render_with_progress`]).
+pub fn render_with_progress(
+    cloth: &ClothParams,
+    scene: &Scene,
+    opts: &RenderOptions,
+    progress: &dyn Progress,
+) -> Image {
+    run_in_pool(opts.threads, || Prepared::new(cloth, scene, opts).render_with_progress(&cloth.appearance, progress))
+}
+
+/// Most worker threads a pool is built with: far above any core count this CPU renderer meets,
+/// low enough that an absurd request (`--threads 5000`) neither exhausts the process limit nor
+/// panics; larger requests are capped to it.
+pub const MAX_THREADS: usize = 256;
+
+/// Run `f` in a rayon pool of `threads` threads (or the global pool). The count is clamped to
+/// `1..=`[`MAX_THREADS`]; if the system refuses to start the pool's threads, `f` runs on the
+/// global pool instead of failing (the result does not depend on the thread count).
 pub fn run_in_pool<R: Send>(threads: Option<usize>, f: impl FnOnce() -> R + Send) -> R {
-    match threads {
-        Some(n) => rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build().expect("thread pool").install(f),
-        None => f(),
+    match threads.map(|n| rayon::ThreadPoolBuilder::new().num_threads(n.clamp(1, MAX_THREADS)).build()) {
+        Some(Ok(pool)) => pool.install(f),
+        Some(Err(_)) | None => f(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    struct Rows(AtomicU64, AtomicU64);
+    impl Progress for Rows {
+        fn begin(&self, _stage: &str, total: u64) {
+            self.0.store(total, Ordering::SeqCst);
+        }
+        fn advance(&self, n: u64) {
+            self.1.fetch_add(n, Ordering::SeqCst);
+        }
+    }
+
+    #[test]
+    fn progress_counts_rows_and_keeps_the_image() {
+        let cloth = ClothParams::preset("twill22").unwrap();
+        let scene = Scene { width: 24, height: 17, spp: 2, ..Scene::default() };
+        let rows = Rows(AtomicU64::new(0), AtomicU64::new(0));
+        let a = render_with_progress(&cloth, &scene, &RenderOptions::default(), &rows);
+        assert_eq!((rows.0.load(Ordering::SeqCst), rows.1.load(Ordering::SeqCst)), (17, 17));
+        // Same bytes whatever the thread count, including an absurd one (capped, no panic).
+        for threads in [Some(1), Some(100_000), None] {
+            let b = render(&cloth, &scene, &RenderOptions { threads, ..Default::default() });
+            assert_eq!(a, b, "{threads:?}");
+        }
     }
 }

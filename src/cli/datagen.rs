@@ -1,14 +1,17 @@
-//! `woven generate`: command-line arguments and the entry point.
+//! `woven generate`: the synthetic training set, with Ctrl-C handling (finish the images in flight,
+//! keep the folder resumable; a second Ctrl-C quits at once).
 
-use super::generate::{generate, GenerateOptions, Interrupted};
-use super::recipe::{Recipe, DEFAULT_RECIPE};
+use super::progress::IndicatifProgress;
 use anyhow::{bail, Context, Result};
+use clap::Args;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
+use woven::datagen::recipe::DEFAULT_RECIPE;
+use woven::datagen::{generate, GenerateOptions, Interrupted, Recipe};
 
 /// Arguments of `woven generate`.
-#[derive(clap::Args, Clone, Debug)]
+#[derive(Args, Clone, Debug)]
 pub struct GenerateArgs {
     /// Number of images (default: the recipe's `count`).
     #[arg(long)]
@@ -23,7 +26,7 @@ pub struct GenerateArgs {
     #[arg(long)]
     pub size: Option<u32>,
     /// Dataset seed (default: the recipe's `seed`).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::parse_seed)]
     pub seed: Option<u64>,
     /// Render only indices ≡ i (mod K), e.g. `--shard 0/4`.
     #[arg(long, value_parser = parse_shard)]
@@ -32,7 +35,7 @@ pub struct GenerateArgs {
     #[arg(long)]
     pub exr: bool,
     /// Worker threads (default: all cores).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::parse_threads)]
     pub threads: Option<usize>,
 }
 
@@ -47,6 +50,7 @@ pub fn parse_shard(s: &str) -> Result<(usize, usize), String> {
     Ok((i, k))
 }
 
+/// The stop flag the library polls, set by the first Ctrl-C (installed once per process).
 fn cancel_flag() -> Arc<AtomicBool> {
     static FLAG: OnceLock<Arc<AtomicBool>> = OnceLock::new();
     FLAG.get_or_init(|| {
@@ -87,7 +91,7 @@ fn resume_command(args: &GenerateArgs) -> String {
     c
 }
 
-/// Run `woven generate`.
+/// `woven generate`.
 pub fn run(args: &GenerateArgs) -> Result<()> {
     let recipe = Recipe::load(&args.recipe)?;
     let mut opts = GenerateOptions::new(&args.out, recipe);
@@ -97,9 +101,8 @@ pub fn run(args: &GenerateArgs) -> Result<()> {
     opts.shard = args.shard.unwrap_or((0, 1));
     opts.exr = args.exr;
     opts.threads = args.threads;
-    opts.progress = true;
     opts.cancel = Some(cancel_flag());
-    match generate(&opts) {
+    match generate(&opts, &IndicatifProgress::new(true)) {
         Ok(s) => {
             eprintln!(
                 "generate: rendered {}, skipped {} (already done), {} of {} present, wall {:.1} s, {:.2} images/s",
@@ -126,5 +129,16 @@ pub fn run(args: &GenerateArgs) -> Result<()> {
             }
             Err(e).context("generate failed")
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shards_parse() {
+        assert_eq!(parse_shard("1/4"), Ok((1, 4)));
+        assert!(parse_shard("4/4").is_err() && parse_shard("0/0").is_err() && parse_shard("x").is_err());
     }
 }
