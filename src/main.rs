@@ -89,9 +89,9 @@ enum Cmd {
         spp: u32,
     },
     /// Reconstruct a photo: pattern, geometry and appearance parameters, re-render and comparisons.
-    Fit(woven::fit::cli::FitArgs),
+    Fit(cli::fit::FitArgs),
     /// Fit N random synthetic targets and report pattern accuracy, parameter error, PSNR and time.
-    Eval(woven::fit::cli::EvalArgs),
+    Eval(cli::fit::EvalArgs),
     /// Export the yarn geometry of a parameter file (PLY curves and tubes, Mitsuba 3 scene).
     Export(woven::export::ExportArgs),
     /// Render the synthetic training set (resumable, shardable, deterministic).
@@ -146,10 +146,10 @@ fn main() -> Result<()> {
             cli::render_file(&params, &out, exr.as_deref(), &o, threads)
                 .with_context(|| format!("rendering {}", params.display()))
         }
-        Cmd::Demo { out, full } => woven::fit::cli::run_demo(&out, !full),
+        Cmd::Demo { out, full } => cli::fit::run_demo(&out, !full),
         Cmd::Examples { out, size, spp } => cli::demo(&out, size, spp),
-        Cmd::Fit(a) => woven::fit::cli::run_fit(&a),
-        Cmd::Eval(a) => woven::fit::cli::run_eval(&a),
+        Cmd::Fit(a) => cli::fit::run_fit(&a),
+        Cmd::Eval(a) => cli::fit::run_eval(&a),
         Cmd::Prep { image, out, no_perspective } => cli::prep(&image, &out, no_perspective).map(|_| ()),
         Cmd::Export(a) => woven::export::run_export(&a),
         Cmd::Generate(a) => woven::datagen::run(&a),

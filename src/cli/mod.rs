@@ -1,6 +1,7 @@
 //! The `woven` command line (binary only): argument types, progress bars, Ctrl-C and printing over
 //! the library, which has no CLI dependency.
 
+pub mod fit;
 pub mod progress;
 
 use anyhow::{anyhow, bail, Context, Result};
