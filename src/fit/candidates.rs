@@ -221,8 +221,10 @@ mod tests {
 
     #[test]
     fn default_twill_falls_back_to_plain_where_a_yarn_would_float() {
-        let twill = WeavePattern::preset("twill22").unwrap();
-        assert!(default_twill(4, 4).reduced().equivalent(&twill));
+        // On 4 × 4 the 2/2 diagonal itself: two warp-on-top cells per row, shifted by one per row.
+        let p = default_twill(4, 4);
+        assert!(!p.has_unbound_yarn());
+        assert!((0..4).all(|i| (0..4).all(|j| p.get(i, j) == ((i + j) % 4 < 2))), "{p}");
         // On 2 × 2 the twill diagonal makes a row of ones: plain instead.
         let p = default_twill(2, 2);
         assert!(!p.has_unbound_yarn());
@@ -247,11 +249,15 @@ mod tests {
     fn best_variant_picks_the_lowest_loss_and_greedy_sweeps_never_raise_it() {
         let cloth = demo_cloth();
         let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
-        let ev = Evaluator::new(fit_scene(n_e, n_a, 4, 1, 3, &LightRig::default_rig()), Image::filled(16, 16, [0.2; 3]), 2);
+        let ev =
+            Evaluator::new(fit_scene(n_e, n_a, 4, 1, 3, &LightRig::default_rig()), Image::filled(16, 16, [0.2; 3]), 2);
         let stop = AtomicBool::new(false);
         // A loss that counts warp-on-top cells: the fewest wins.
         let ones = |_: &Evaluator, c: &mut ClothParams| {
-            (0..c.pattern.n_e()).flat_map(|i| (0..c.pattern.n_a()).map(move |j| (i, j))).filter(|&(i, j)| c.pattern.get(i, j)).count() as f32
+            (0..c.pattern.n_e())
+                .flat_map(|i| (0..c.pattern.n_a()).map(move |j| (i, j)))
+                .filter(|&(i, j)| c.pattern.get(i, j))
+                .count() as f32
         };
         let cands = template_candidates(n_e, n_a);
         let (l, _) = best_variant(&ev, &cloth, cands.clone(), |c, p| c.pattern = p, ones, &stop).unwrap();

@@ -80,7 +80,12 @@ pub(crate) fn block_filter(img: &Image, b: u32) -> Vec<[f32; 3]> {
 /// The box filter of [`block_filter`] applied to shaded values with derivatives (`w × h`,
 /// row-major): per block and channel, the filtered value (clamped to [0, 1]) and its derivative
 /// with respect to the appearance vector (clipped pixels carry none). Row-major blocks.
-pub(crate) fn block_jacobian(px: &[[Dual<N_APPEARANCE>; 3]], w: u32, h: u32, b: u32) -> Vec<[(f32, [f32; N_APPEARANCE]); 3]> {
+pub(crate) fn block_jacobian(
+    px: &[[Dual<N_APPEARANCE>; 3]],
+    w: u32,
+    h: u32,
+    b: u32,
+) -> Vec<[(f32, [f32; N_APPEARANCE]); 3]> {
     let blocks = Blocks::new(w, h, b);
     let inv = blocks.weight();
     let mut acc = vec![[(0.0f32, [0.0f32; N_APPEARANCE]); 3]; blocks.len()];
@@ -285,10 +290,8 @@ mod tests {
             Dual { v, d }
         };
         // One 2 × 2 block: two pixels inside (0, 1), one above 1, one below 0.
-        let px: Vec<[Dual<N_APPEARANCE>; 3]> = [0.2f32, 0.6, 1.5, -0.5]
-            .iter()
-            .map(|&v| [dual(v, 1.0), dual(v, 2.0), dual(0.5, 0.0)])
-            .collect();
+        let px: Vec<[Dual<N_APPEARANCE>; 3]> =
+            [0.2f32, 0.6, 1.5, -0.5].iter().map(|&v| [dual(v, 1.0), dual(v, 2.0), dual(0.5, 0.0)]).collect();
         let j = block_jacobian(&px, 2, 2, 2);
         assert_eq!(j.len(), 1);
         assert!((j[0][0].0 - (0.2 + 0.6 + 1.0 + 0.0) / 4.0).abs() < 1e-7);

@@ -92,7 +92,8 @@ fn rivals(st: &Stage, quick: &Evaluator, best: &ClothParams, others: &[ClothPara
         }
     }
     if st.cells {
-        let cands = candidate_patterns(quick, n_e, n_a, st.render.px_per_cell).into_iter().chain([best.pattern.clone()]);
+        let cands =
+            candidate_patterns(quick, n_e, n_a, st.render.px_per_cell).into_iter().chain([best.pattern.clone()]);
         let top = best_variant(quick, best, cands, |cl, p| cl.pattern = p, state_loss, stop);
         if let Some((_, p)) = top.filter(|(_, p)| finals.iter().all(|f| f.pattern != *p)) {
             let mut c2 = best.clone();
@@ -194,7 +195,10 @@ mod tests {
         // Rivals: the start itself first, then distinct discrete states only.
         let r = rivals(&st, &ev.resampled(QUICK_SPP, 1), &wrong, &[wrong.clone(), truth.clone()]);
         assert_eq!(r[0], wrong);
-        assert!(r.iter().skip(1).all(|c| (c.pattern.clone(), c.n_p, c.n_f) != (wrong.pattern.clone(), wrong.n_p, wrong.n_f)));
+        assert!(r
+            .iter()
+            .skip(1)
+            .all(|c| (c.pattern.clone(), c.n_p, c.n_f) != (wrong.pattern.clone(), wrong.n_p, wrong.n_f)));
         assert!(r.contains(&inverted_twin(&wrong)));
     }
 }

@@ -115,7 +115,8 @@ mod tests {
     #[test]
     fn a_fixed_pattern_sets_the_grid_and_a_given_grid_is_checked() {
         let crop = Image::filled(32, 32, [0.5; 3]);
-        let opts = InputOptions { prep: false, grid: Some((9, 9)), pattern: Some(WeavePattern::preset("satin5").unwrap()) };
+        let opts =
+            InputOptions { prep: false, grid: Some((9, 9)), pattern: Some(WeavePattern::preset("satin5").unwrap()) };
         let mut w = Vec::new();
         assert_eq!(settle_grid(&crop, opts.grid, &opts, &mut w).unwrap(), (5, 5));
         assert!(w.is_empty(), "no warning without prep: {w:?}");

@@ -225,7 +225,16 @@ impl<'a> Walker<'a> {
         let cache = ev.record(&start);
         let mse = ev.mse_of(&cache.shade(&start.appearance));
         let loss = total_loss(mse, &start.appearance.to_vec());
-        Walker { ev, best: (loss, start.clone()), cloth: start, cache, stale: false, mse, grad: [0.0; N_APPEARANCE], loss }
+        Walker {
+            ev,
+            best: (loss, start.clone()),
+            cloth: start,
+            cache,
+            stale: false,
+            mse,
+            grad: [0.0; N_APPEARANCE],
+            loss,
+        }
     }
 
     /// Make the current state the best when `loss` (its loss) beats the best.

@@ -135,13 +135,18 @@ fn pipeline(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     let r = &opts.render;
     let target = input::prepare_target(input, &opts.input, r.px_per_cell)?;
     let (n_e, n_a) = target.grid;
-    let ev = Evaluator::new(target::fit_scene(n_e, n_a, r.px_per_cell, r.spp, r.seed, &r.lights), target.image, r.loss_block);
+    let ev = Evaluator::new(
+        target::fit_scene(n_e, n_a, r.px_per_cell, r.spp, r.seed, &r.lights),
+        target.image,
+        r.loss_block,
+    );
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
 
     let mut warnings = target.warnings;
     let pattern0 = opts.input.pattern.as_ref().map_or_else(|| default_twill(n_e, n_a), candidates::unreduced);
-    let pre = preestimate::pre_estimate(&st, &opts.pre, &target.crop, preestimate::default_cloth(pattern0), &mut warnings)?;
+    let pre =
+        preestimate::pre_estimate(&st, &opts.pre, &target.crop, preestimate::default_cloth(pattern0), &mut warnings)?;
     let t_pre = clock.elapsed().as_secs_f64() - t_prep;
 
     let joint = joint::run_all(&st, &opts.joint, &pre.starts);

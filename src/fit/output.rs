@@ -37,7 +37,8 @@ pub(crate) fn final_state(
     prep: Option<&crate::prep::Prepared>,
 ) -> Result<FinalState> {
     let cloth = clamp_ranges(best);
-    let final_scene = Scene { spp: settings.final_spp.max(1), seed: settings.seed.wrapping_add(7), ..ev.scene().clone() };
+    let final_scene =
+        Scene { spp: settings.final_spp.max(1), seed: settings.seed.wrapping_add(7), ..ev.scene().clone() };
     let render = Prepared::new(&cloth, &final_scene, &RenderOptions::default()).render(&cloth.appearance);
     let psnr_db = render.psnr_srgb(ev.target());
     // A body texture is laid over the fit grid, so the pattern keeps that grid.
@@ -152,99 +153,117 @@ pub fn write_trace(res: &FitResult, path: &Path) -> Result<()> {
     register_font();
     let (w, h) = (900u32, 700u32);
     let mut buf = vec![255u8; (w * h * 3) as usize];
-    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting the trace: {e}");
     {
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| err(&e))?;
+        root.fill(&WHITE).map_err(plot_err)?;
         let (top, bottom) = root.split_vertically(350);
-        let hist = &res.history;
-        let n = hist.len().max(2) as f64;
-        let loss: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.loss as f64).max(1e-9))).collect();
-        let best: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.best_loss as f64).max(1e-9))).collect();
-        let (lo, hi) = loss.iter().chain(&best).fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.1), b.max(p.1)));
-        let (lo, hi) = if lo < hi { (lo * 0.8, hi * 1.25) } else { (1e-6, 1.0) };
-        let mut chart = ChartBuilder::on(&top)
-            .caption(format!("fit loss (MSE + barrier), PSNR {:.2} dB", res.psnr_db), ("sans-serif", 20))
-            .margin(12)
-            .x_label_area_size(35)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..n, (lo..hi).log_scale())
-            .map_err(|e| err(&e))?;
-        chart
-            .configure_mesh()
-            .x_desc("iteration")
-            .y_desc("loss")
-            .y_label_formatter(&|v| format!("{v:.1e}"))
-            .label_style(("sans-serif", 12))
-            .draw()
-            .map_err(|e| err(&e))?;
-        chart
-            .draw_series(LineSeries::new(loss.iter().copied(), BLUE.stroke_width(2)))
-            .map_err(|e| err(&e))?
-            .label("current")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
-        chart
-            .draw_series(LineSeries::new(best.iter().copied(), BLACK.stroke_width(1)))
-            .map_err(|e| err(&e))?
-            .label("best")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
-        let acc: Vec<(f64, f64)> = hist
-            .iter()
-            .filter(|l| l.accepted && l.proposal.is_some_and(|p| p.is_cell()))
-            .map(|l| (l.iter as f64, (l.loss as f64).max(1e-9)))
-            .collect();
-        chart
-            .draw_series(PointSeries::of_element(acc, 4, RED.filled(), &|c, s, st| {
-                EmptyElement::at(c) + Circle::new((0, 0), s, st)
-            }))
-            .map_err(|e| err(&e))?
-            .label("accepted pattern change")
-            .legend(|(x, y)| Circle::new((x + 10, y), 4, RED.filled()));
-        chart
-            .configure_series_labels()
-            .label_font(("sans-serif", 13))
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
-
-        let mut chart = ChartBuilder::on(&bottom)
-            .caption("parameters (normalised to their range)", ("sans-serif", 18))
-            .margin(12)
-            .x_label_area_size(35)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..n, 0.0..1.0f64)
-            .map_err(|e| err(&e))?;
-        chart.configure_mesh().x_desc("iteration").label_style(("sans-serif", 12)).draw().map_err(|e| err(&e))?;
-        type Getter = Box<dyn Fn(&super::joint::IterLog) -> f64>;
-        let series: Vec<(&str, RGBColor, Getter)> = vec![
-            ("r_e", RGBColor(200, 0, 0), Box::new(|l| (l.r_e as f64 - 1.0) / 4.0)),
-            ("r_a", RGBColor(0, 120, 0), Box::new(|l| (l.r_a as f64 - 1.0) / 4.0)),
-            ("n_p", RGBColor(120, 0, 160), Box::new(|l| (l.n_p as f64 - 1.0) / 6.0)),
-            ("n_f", RGBColor(160, 100, 0), Box::new(|l| (l.n_f as f64 - 20.0) / 30.0)),
-            ("m_r", RGBColor(0, 0, 200), Box::new(|l| (l.appearance[0] as f64 - 0.2) / 0.6)),
-            ("r_b_e[0]", RGBColor(255, 80, 80), Box::new(|l| l.appearance[16] as f64)),
-            ("r_b_a[0]", RGBColor(80, 160, 255), Box::new(|l| l.appearance[19] as f64)),
-            ("T/T0", RGBColor(120, 120, 120), Box::new(|l| (l.temperature / super::anneal::T0).min(1.0))),
-        ];
-        for (name, col, get) in series {
-            let pts: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, get(l).clamp(0.0, 1.0))).collect();
-            chart
-                .draw_series(LineSeries::new(pts, col.stroke_width(2)))
-                .map_err(|e| err(&e))?
-                .label(name)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2)));
-        }
-        chart
-            .configure_series_labels()
-            .label_font(("sans-serif", 12))
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
-        root.present().map_err(|e| err(&e))?;
+        draw_loss(&top, res)?;
+        draw_parameters(&bottom, res)?;
+        root.present().map_err(plot_err)?;
     }
     write_png(path, w, h, buf)
+}
+
+/// A plotting error of `trace.png` as an error of the fit outputs.
+fn plot_err(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("plotting the trace: {e}")
+}
+
+/// The loss chart of `trace.png`: current and best loss (log scale), accepted cell changes.
+fn draw_loss<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>, res: &FitResult) -> Result<()> {
+    let hist = &res.history;
+    let n = hist.len().max(2) as f64;
+    let loss: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.loss as f64).max(1e-9))).collect();
+    let best: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.best_loss as f64).max(1e-9))).collect();
+    let (lo, hi) = loss.iter().chain(&best).fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.1), b.max(p.1)));
+    let (lo, hi) = if lo < hi { (lo * 0.8, hi * 1.25) } else { (1e-6, 1.0) };
+    let mut chart = ChartBuilder::on(area)
+        .caption(format!("fit loss (MSE + barrier), PSNR {:.2} dB", res.psnr_db), ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(35)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..n, (lo..hi).log_scale())
+        .map_err(plot_err)?;
+    chart
+        .configure_mesh()
+        .x_desc("iteration")
+        .y_desc("loss")
+        .y_label_formatter(&|v| format!("{v:.1e}"))
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(plot_err)?;
+    chart
+        .draw_series(LineSeries::new(loss.iter().copied(), BLUE.stroke_width(2)))
+        .map_err(plot_err)?
+        .label("current")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+    chart
+        .draw_series(LineSeries::new(best.iter().copied(), BLACK.stroke_width(1)))
+        .map_err(plot_err)?
+        .label("best")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
+    let acc: Vec<(f64, f64)> = hist
+        .iter()
+        .filter(|l| l.accepted && l.proposal.is_some_and(|p| p.is_cell()))
+        .map(|l| (l.iter as f64, (l.loss as f64).max(1e-9)))
+        .collect();
+    chart
+        .draw_series(PointSeries::of_element(acc, 4, RED.filled(), &|c, s, st| {
+            EmptyElement::at(c) + Circle::new((0, 0), s, st)
+        }))
+        .map_err(plot_err)?
+        .label("accepted pattern change")
+        .legend(|(x, y)| Circle::new((x + 10, y), 4, RED.filled()));
+    chart
+        .configure_series_labels()
+        .label_font(("sans-serif", 13))
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_err)?;
+    Ok(())
+}
+
+/// The parameter chart of `trace.png`: radii, counts, a few appearance scalars and the
+/// temperature, each normalised to its range.
+fn draw_parameters<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>, res: &FitResult) -> Result<()> {
+    let hist = &res.history;
+    let n = hist.len().max(2) as f64;
+    let mut chart = ChartBuilder::on(area)
+        .caption("parameters (normalised to their range)", ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(35)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..n, 0.0..1.0f64)
+        .map_err(plot_err)?;
+    chart.configure_mesh().x_desc("iteration").label_style(("sans-serif", 12)).draw().map_err(plot_err)?;
+    type Getter = Box<dyn Fn(&super::joint::IterLog) -> f64>;
+    let series: Vec<(&str, RGBColor, Getter)> = vec![
+        ("r_e", RGBColor(200, 0, 0), Box::new(|l| (l.r_e as f64 - 1.0) / 4.0)),
+        ("r_a", RGBColor(0, 120, 0), Box::new(|l| (l.r_a as f64 - 1.0) / 4.0)),
+        ("n_p", RGBColor(120, 0, 160), Box::new(|l| (l.n_p as f64 - 1.0) / 6.0)),
+        ("n_f", RGBColor(160, 100, 0), Box::new(|l| (l.n_f as f64 - 20.0) / 30.0)),
+        ("m_r", RGBColor(0, 0, 200), Box::new(|l| (l.appearance[0] as f64 - 0.2) / 0.6)),
+        ("r_b_e[0]", RGBColor(255, 80, 80), Box::new(|l| l.appearance[16] as f64)),
+        ("r_b_a[0]", RGBColor(80, 160, 255), Box::new(|l| l.appearance[19] as f64)),
+        ("T/T0", RGBColor(120, 120, 120), Box::new(|l| (l.temperature / super::anneal::T0).min(1.0))),
+    ];
+    for (name, col, get) in series {
+        let pts: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, get(l).clamp(0.0, 1.0))).collect();
+        chart
+            .draw_series(LineSeries::new(pts, col.stroke_width(2)))
+            .map_err(plot_err)?
+            .label(name)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .label_font(("sans-serif", 12))
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_err)?;
+    Ok(())
 }
 
 /// Every output of a fit in `dir`: with preparation, noise post-estimation (paper §6.3) — the
@@ -299,4 +318,37 @@ pub fn write_outputs(
     write_compare(res, &dir.join("compare.png"))?;
     write_trace(res, &dir.join("trace.png"))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::target::fit_scene;
+    use crate::scene::LightRig;
+
+    #[test]
+    fn the_final_cloth_is_clamped_to_table_1() {
+        let mut c = crate::fit::demo::demo_cloth();
+        c.appearance.m_r = -1.0;
+        c.appearance.r_b_e = [1.2, 0.5, -0.1];
+        (c.r_e, c.r_a) = (RADIUS_RANGE.1 + 1.0, 4.0);
+        let k = clamp_ranges(&c);
+        assert_eq!(k.appearance.m_r, APPEARANCE_RANGES[0].min);
+        assert_eq!(k.appearance.r_b_e, [1.0, 0.5, 0.0]);
+        assert_eq!((k.r_e, k.r_a), (RADIUS_RANGE.1, 4.0));
+        k.validate().unwrap();
+    }
+
+    #[test]
+    fn the_output_scene_frames_the_input_with_the_reduced_repeat() {
+        let fit = fit_scene(4, 6, 10, 4, 1, &LightRig::default_rig());
+        // A 4×6 fit grid whose pattern reduces to 2×3: the 60×40 px input shows two repeats a side.
+        let s = output_scene(&fit, (4, 6), (2, 3), (60, 40), None);
+        assert_eq!((s.width, s.height, s.spp), (60, 40, 16));
+        assert_eq!(s.camera.tiles, 2.0);
+        assert_eq!(s.camera.offset, [1.0, 1.0]);
+        // Tiny inputs still render at least 8 px a side.
+        let s = output_scene(&fit, (4, 6), (4, 6), (3, 5), None);
+        assert_eq!((s.width, s.height, s.camera.tiles), (8, 8, 1.0));
+    }
 }

@@ -41,7 +41,7 @@ impl Proposal {
     /// Draw a proposal for `cloth`: with free cells (`cells`), a cell toggle (72 %), the inverted
     /// twin (8 %), another `n_p` (10 %) or `n_f ± 1..5` (10 %); with a fixed pattern, `n_p` or
     /// `n_f` (50 % each). A twin or toggle that would leave a yarn floating over the whole repeat
-    /// (not a weave) falls through to the next kind (a toggle after [`CELL_TRIES`] draws).
+    /// (not a weave) falls through to the next kind (a toggle after `CELL_TRIES` = 32 draws).
     pub fn draw(rng: &mut StdRng, cloth: &ClothParams, cells: bool) -> Proposal {
         let r: f32 = rng.random();
         if cells && (0.72..0.8).contains(&r) && !cloth.pattern.inverted().has_unbound_yarn() {

@@ -184,7 +184,11 @@ mod tests {
         assert!(line.starts_with("eval: pattern_exact=0.50 median_err=0.020"), "{line}");
         assert!(line.contains("relit_db=27.0"), "{line}");
         let md = rep.markdown();
-        assert!(md.contains("`woven eval --ablation no-pre`") && md.contains("| 1 | `10/01` | `1100/0110/0011/1001` | no |"), "{md}");
+        assert!(
+            md.contains("`woven eval --ablation no-pre`")
+                && md.contains("| 1 | `10/01` | `1100/0110/0011/1001` | no |"),
+            "{md}"
+        );
         assert!(md.contains("| 10 | 1.0 |"), "{md}");
     }
 }
