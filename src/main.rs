@@ -35,9 +35,9 @@ enum Cmd {
     /// Render the example scenes (plain, twill, satin × front, back, both lights) and a contact sheet.
     Examples(cli::render::ExamplesArgs),
     /// Reconstruct a photo: pattern, geometry and appearance parameters, re-render and comparisons.
-    Fit(woven::fit::cli::FitArgs),
+    Fit(cli::fit::FitArgs),
     /// Fit N random synthetic targets and report pattern accuracy, parameter error, PSNR and time.
-    Eval(woven::fit::cli::EvalArgs),
+    Eval(cli::fit::EvalArgs),
     /// Export the yarn geometry of a parameter file (PLY curves and tubes, Mitsuba 3 scene).
     Export(cli::export::ExportArgs),
     /// Render the synthetic training set (resumable, shardable, deterministic).
@@ -59,10 +59,10 @@ fn main() -> Result<()> {
     match cli.cmd {
         Cmd::Params(a) => cli::render::run_params(&a),
         Cmd::Render(a) => cli::render::run_render(&a),
-        Cmd::Demo { out, full } => woven::fit::cli::run_demo(&out, !full),
+        Cmd::Demo { out, full } => cli::fit::run_demo(&out, !full),
         Cmd::Examples(a) => cli::render::run_examples(&a),
-        Cmd::Fit(a) => woven::fit::cli::run_fit(&a),
-        Cmd::Eval(a) => woven::fit::cli::run_eval(&a),
+        Cmd::Fit(a) => cli::fit::run_fit(&a),
+        Cmd::Eval(a) => cli::fit::run_eval(&a),
         Cmd::Prep(a) => cli::prep::run(&a),
         Cmd::Export(a) => cli::export::run(&a),
         Cmd::Generate(a) => cli::datagen::run(&a),

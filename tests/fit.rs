@@ -1,5 +1,5 @@
-//! Tests of `woven fit` (library): annealing rules, barrier, a small synthetic fit, stop flag,
-//! input errors. Fast settings; a few seconds each on 2 cores.
+//! Tests of `woven fit` (library, and the command line for its argument errors): annealing rules,
+//! barrier, a small synthetic fit, stop flag, input errors. Fast settings; a few seconds each on 2 cores.
 
 use rand::rngs::StdRng;
 use rand::SeedableRng;
@@ -8,7 +8,7 @@ use std::sync::Arc;
 use woven::fit::anneal::{
     acceptance_probability, barrier, barrier_grad, metropolis_accept, temperature, BARRIER_LAMBDA, DECAY, T0,
 };
-use woven::fit::cli::{demo_cloth, run_fit, synthetic_target, FitArgs};
+use woven::fit::demo::{demo_cloth, synthetic_target};
 use woven::fit::target::{cell_rect, fit_scene, yarn_mean};
 use woven::fit::{fit, output, FitOptions};
 use woven::image_io::Image;
@@ -16,7 +16,19 @@ use woven::params::{Appearance, ClothParams};
 use woven::pattern::WeavePattern;
 
 fn small_opts() -> FitOptions {
-    FitOptions { prep: false, iterations: 40, px_per_cell: 8, model: None, threads: Some(2), ..FitOptions::fast() }
+    let mut o = FitOptions::fast();
+    o.input.prep = false;
+    o.joint.iterations = 40;
+    o.render.px_per_cell = 8;
+    o.pre.model = None;
+    o.control.threads = Some(2);
+    o
+}
+
+/// Run the `woven` binary; its success and standard error.
+fn woven_cli(args: &[&std::ffi::OsStr]) -> (bool, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_woven")).args(args).output().expect("running woven");
+    (out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
 }
 
 fn two_colour_cloth(pattern: &str) -> ClothParams {
@@ -110,7 +122,9 @@ fn cell_mapping_matches_the_renderer() {
 fn small_fit_recovers_pattern_and_colours() {
     let truth = two_colour_cloth("1100/0110/0011/1001");
     let target = synthetic_target(&truth, 10, 32, 777, Some(2));
-    let opts = FitOptions { iterations: 100, px_per_cell: 10, ..small_opts() };
+    let mut opts = small_opts();
+    opts.joint.iterations = 100;
+    opts.render.px_per_cell = 10;
     let res = fit(&target, &opts).unwrap();
     assert!(
         res.params.cloth.pattern.equivalent(&truth.pattern),
@@ -124,7 +138,7 @@ fn small_fit_recovers_pattern_and_colours() {
     assert!(a.r_b_a[2] > a.r_b_a[0] + 0.3, "r_b_a {:?}", a.r_b_a);
     assert!(res.psnr_db > 17.0, "psnr {}", res.psnr_db);
     res.params.validate().unwrap();
-    assert!(res.history.len() == opts.iterations);
+    assert!(res.history.len() == opts.joint.iterations);
 }
 
 #[test]
@@ -132,12 +146,12 @@ fn stop_flag_keeps_best_and_writes_files() {
     let truth = two_colour_cloth("10/01");
     let target = synthetic_target(&truth, 8, 8, 5, Some(2));
     let mut opts = small_opts();
-    opts.iterations = 200;
+    opts.joint.iterations = 200;
     let stop = Arc::new(AtomicBool::new(false));
-    opts.stop = stop.clone();
+    opts.control.stop = stop.clone();
     let count = Arc::new(AtomicUsize::new(0));
     let (s2, c2) = (stop.clone(), count.clone());
-    opts.on_iter = Some(Arc::new(move |_| {
+    opts.control.on_iter = Some(Arc::new(move |_| {
         if c2.fetch_add(1, Ordering::SeqCst) + 1 == 6 {
             s2.store(true, Ordering::SeqCst);
         }
@@ -160,10 +174,11 @@ fn stop_flag_keeps_best_and_writes_files() {
 #[test]
 fn bad_inputs_give_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
-    // Missing image.
-    let args = FitArgs::new(dir.path().join("nope.png"), dir.path().join("out"));
-    let e = format!("{:#}", run_fit(&args).unwrap_err());
-    assert!(e.contains("nope.png") && e.contains("not found"), "{e}");
+    let out = dir.path().join("out");
+    // Missing image (the command line: a clear error and a non-zero exit).
+    let (ok, e) =
+        woven_cli(&["fit".as_ref(), dir.path().join("nope.png").as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert!(!ok && e.contains("nope.png") && e.contains("not found"), "{e}");
     // Tiny image.
     let e = format!("{:#}", fit(&Image::filled(8, 8, [0.5; 3]), &small_opts()).unwrap_err());
     assert!(e.contains("8×8") && e.contains("at least"), "{e}");
@@ -175,14 +190,14 @@ fn bad_inputs_give_clear_errors() {
     // Bad --pattern.
     let png = dir.path().join("in.png");
     Image::filled(32, 32, [0.5; 3]).save_png(&png).unwrap();
-    let mut args = FitArgs::new(&png, dir.path().join("out"));
-    args.pattern = Some("12/01".into());
-    let e = format!("{:#}", run_fit(&args).unwrap_err());
-    assert!(e.contains("--pattern") && e.contains("12/01") && e.contains("unknown weave preset"), "{e}");
+    let fit_with = |flag: &str, value: &str| {
+        woven_cli(&["fit".as_ref(), png.as_os_str(), "--out".as_ref(), out.as_os_str(), flag.as_ref(), value.as_ref()])
+    };
+    let (ok, e) = fit_with("--pattern", "12/01");
+    assert!(!ok && e.contains("--pattern") && e.contains("12/01") && e.contains("unknown weave preset"), "{e}");
     // Bad grid.
-    let mut args = FitArgs::new(&png, dir.path().join("out"));
-    args.grid = Some("4by4".into());
-    assert!(format!("{:#}", run_fit(&args).unwrap_err()).contains("--grid"));
+    let (ok, e) = fit_with("--grid", "4by4");
+    assert!(!ok && e.contains("--grid"), "{e}");
     // Uniform image without prep and without grid: no yarn grid.
     let e = format!("{:#}", fit(&Image::filled(32, 32, [0.5; 3]), &small_opts()).unwrap_err());
     assert!(e.contains("grid"), "{e}");
@@ -192,14 +207,16 @@ fn bad_inputs_give_clear_errors() {
 #[ignore]
 fn demo_run() {
     let _ = demo_cloth();
-    woven::fit::cli::run_demo(std::path::Path::new("/tmp/woven_demo"), true).unwrap();
+    let (ok, e) = woven_cli(&["demo".as_ref(), "--out".as_ref(), "/tmp/woven_demo".as_ref()]);
+    assert!(ok, "{e}");
 }
 
 #[test]
 #[ignore]
 fn eval_run() {
-    let args = woven::fit::cli::EvalArgs { count: 6, iterations: 100, ..Default::default() };
-    woven::fit::cli::run_eval(&args).unwrap();
+    let (ok, e) =
+        woven_cli(&["eval".as_ref(), "--count".as_ref(), "6".as_ref(), "--iterations".as_ref(), "100".as_ref()]);
+    assert!(ok, "{e}");
 }
 
 #[test]
@@ -219,16 +236,16 @@ fn template_candidates_cover_every_shift_of_fitting_presets() {
 /// default initialisation with preparation and pre-estimation bypassed (~70 s on 2 cores).
 #[test]
 fn custom_logo_pattern_is_recovered_without_prep_or_pre_estimation() {
-    let mut truth = woven::fit::cli::demo_cloth();
+    let mut truth = demo_cloth();
     truth.pattern = woven::WeavePattern::parse("100001/011110/010010/010010/011110/100001").unwrap();
     let c = 16;
-    let target = woven::fit::cli::synthetic_target(&truth, c, 32, 77, None);
-    let mut o = woven::fit::FitOptions::fast();
-    o.iterations = 150;
-    o.prep = false;
-    o.pre_estimate = false;
-    o.px_per_cell = c;
-    o.grid = Some((6, 6));
+    let target = synthetic_target(&truth, c, 32, 77, None);
+    let mut o = FitOptions::fast();
+    o.joint.iterations = 150;
+    o.input.prep = false;
+    o.pre.enabled = false;
+    o.render.px_per_cell = c;
+    o.input.grid = Some((6, 6));
     let r = woven::fit::fit(&target, &o).unwrap();
     assert!(
         r.cloth.pattern.reduced().equivalent(&truth.pattern),
@@ -242,7 +259,7 @@ fn custom_logo_pattern_is_recovered_without_prep_or_pre_estimation() {
 /// body colour (one texel per cell) recovers the stripes and does not fit worse than uniform colour.
 #[test]
 fn svcolor_fits_a_striped_cloth_better() {
-    let mut truth = woven::fit::cli::demo_cloth();
+    let mut truth = demo_cloth();
     truth.pattern = woven::WeavePattern::from_rows_unreduced(&[
         vec![true, false, true, false],
         vec![false, true, false, true],
@@ -259,14 +276,14 @@ fn svcolor_fits_a_striped_cloth_better() {
         }
     }
     truth.body_texture = Some(tex);
-    let target = woven::fit::cli::synthetic_target(&truth, 12, 32, 5, None);
+    let target = synthetic_target(&truth, 12, 32, 5, None);
     let run = |sv: u32| {
-        let mut o = woven::fit::FitOptions::fast();
-        o.iterations = 40;
-        o.prep = false;
-        o.px_per_cell = 12;
-        o.pattern = Some(truth.pattern.clone());
-        o.svcolor = sv;
+        let mut o = FitOptions::fast();
+        o.joint.iterations = 40;
+        o.input.prep = false;
+        o.render.px_per_cell = 12;
+        o.input.pattern = Some(truth.pattern.clone());
+        o.finish.svcolor = sv;
         woven::fit::fit(&target, &o).unwrap()
     };
     let (plain, sv) = (run(0), run(1));

@@ -4,7 +4,7 @@
 
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use woven::fit::cli::{random_cloth, synthetic_target};
+use woven::fit::demo::{random_cloth, synthetic_target};
 use woven::fit::target::{detect_grid, resample};
 
 /// Targets per setting (`WOVEN_GRID_COUNT` overrides, for the wider check in docs/benchmarks.md).

@@ -6,6 +6,7 @@
 pub mod bench;
 pub mod datagen;
 pub mod export;
+pub mod fit;
 pub mod net;
 pub mod prep;
 pub mod progress;

@@ -1,4 +1,5 @@
-//! The optimizer's building blocks: annealing schedule, Metropolis rule, barrier, Adam.
+//! The optimizer's building blocks: annealing schedule, Metropolis rule, energy calibration,
+//! barrier, Adam.
 
 use crate::params::{ParamRange, APPEARANCE_RANGES, N_APPEARANCE, RADIUS_RANGE};
 use rand::{Rng, RngExt};
@@ -35,6 +36,20 @@ pub fn metropolis_accept<R: Rng + ?Sized>(delta: f64, t: f64, rng: &mut R) -> bo
     }
     let p = acceptance_probability(delta, t);
     p > 0.0 && rng.random::<f64>() < p
+}
+
+/// Energy scale used when none can be calibrated (no uphill proposal among the draws).
+pub const FALLBACK_ENERGY_SCALE: f64 = 1e5;
+
+/// Energy per unit MSE from the MSE increases of a few uphill proposals drawn at the start of a
+/// run: the median increase costs `t0·ln 2`, so half of the early uphill proposals are accepted
+/// (pipeline §5). [`FALLBACK_ENERGY_SCALE`] without a positive median.
+pub fn energy_scale_from_uphill(mut ups: Vec<f64>, t0: f64) -> f64 {
+    ups.sort_by(f64::total_cmp);
+    match ups.get(ups.len() / 2) {
+        Some(&m) if m > 0.0 => t0 * std::f64::consts::LN_2 / m,
+        _ => FALLBACK_ENERGY_SCALE,
+    }
 }
 
 /// Barrier of one scalar: `λ·(max(0, x − b)² + max(0, a − x)²)` — zero inside `[a, b]`.
@@ -104,5 +119,39 @@ impl Adam {
             let vh = self.v[k] / c2;
             x[k] -= lr[k] * mh / (vh.sqrt() + 1e-8);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn calibrated_scale_accepts_the_median_uphill_move_half_of_the_time() {
+        let ups = vec![4e-4, 1e-4, 9e-4, 2e-4, 3e-4];
+        let k = energy_scale_from_uphill(ups, T0);
+        // Median 3e-4 costs T0·ln 2: acceptance probability one half.
+        assert!((k - T0 * std::f64::consts::LN_2 / 3e-4).abs() < 1e-6 * k);
+        assert!((acceptance_probability(k * 3e-4, T0) - 0.5).abs() < 1e-12);
+        // Upper median of an even count.
+        let k2 = energy_scale_from_uphill(vec![2.0, 1.0], 1.0);
+        assert!((k2 - std::f64::consts::LN_2 / 2.0).abs() < 1e-15);
+        assert_eq!(energy_scale_from_uphill(Vec::new(), T0), FALLBACK_ENERGY_SCALE);
+        assert_eq!(energy_scale_from_uphill(vec![0.0], T0), FALLBACK_ENERGY_SCALE);
+    }
+
+    #[test]
+    fn adam_steps_against_the_gradient_on_masked_coordinates_only() {
+        let mut adam = Adam::new(3);
+        let mut x = [1.0f32, 1.0, 1.0];
+        adam.step(&mut x, &[2.0, -3.0, f32::NAN], &[0.1, 0.1, 0.1], &[true, true, true]);
+        // First step: m̂/√v̂ = sign(g), so each coordinate moves by its step size.
+        assert!((x[0] - 0.9).abs() < 1e-6 && (x[1] - 1.1).abs() < 1e-6, "{x:?}");
+        assert_eq!(x[2], 1.0, "a non-finite gradient leaves the coordinate");
+        // Masked-out coordinates stay; the free one moves (still upwards: momentum of the first
+        // gradient outweighs the new one).
+        adam.step(&mut x, &[1.0, 1.0, 1.0], &[0.1; 3], &[false, true, false]);
+        assert!((x[0] - 0.9).abs() < 1e-6 && x[2] == 1.0, "{x:?}");
+        assert!(x[1] > 1.1 && x[1] < 1.2, "{x:?}");
     }
 }

@@ -38,7 +38,7 @@ pub fn appearance_sd(
     });
     // Rows of J: one per filtered value; clipped values (outside (0, 1)) carry no information.
     let mut fisher = vec![0.0f64; N_APPEARANCE * N_APPEARANCE];
-    for block in super::block_jacobian(&px, w, h, b) {
+    for block in super::evaluator::block_jacobian(&px, w, h, b) {
         for (_, row) in &block {
             for i in 0..N_APPEARANCE {
                 let ri = row[i] as f64 * spans[i];

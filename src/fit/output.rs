@@ -1,12 +1,101 @@
-//! Files of a fit: `fit.json`, `prep.json`, `fit.png`, `compare.png`, `trace.png`, `log.jsonl`.
+//! The fit's output stage: the final state (clamped to Table 1, rendered at `final_spp`, the
+//! pattern reduced, a scene that frames the input) and the files of a fit: `fit.json`,
+//! `prep.json`, `noise.json`, `fit.png`, `compare.png`, `trace.png`, `log.jsonl`, `export/`.
 
+use super::evaluator::Evaluator;
+use super::options::RenderSettings;
 use super::FitResult;
 use crate::image_io::Image;
+use crate::params::{Appearance, ClothParams, ParamFile, APPEARANCE_RANGES, RADIUS_RANGE};
 use crate::plot::{register_font, write_rgb_png as write_png};
-use crate::render::{render, RenderOptions};
+use crate::render::{render, Prepared, RenderOptions};
+use crate::scene::Scene;
 use anyhow::{Context, Result};
 use plotters::prelude::*;
 use std::path::Path;
+
+/// The fit's final state.
+pub(crate) struct FinalState {
+    /// Best cloth on the fit grid, clamped to the Table-1 ranges.
+    pub cloth: ClothParams,
+    /// The cloth with the reduced pattern and a scene that renders the input's framing.
+    pub params: ParamFile,
+    /// Render of `cloth` at the fit's view and `final_spp`.
+    pub render: Image,
+    /// PSNR (sRGB) of `render` against the target.
+    pub psnr_db: f32,
+}
+
+/// The final state of `best` (on the `grid` of the fit's evaluator `ev`) for an input of `size`
+/// pixels, prepared by `prep` or not; errors when the parameter file does not validate.
+pub(crate) fn final_state(
+    best: &ClothParams,
+    ev: &Evaluator,
+    settings: &RenderSettings,
+    grid: (usize, usize),
+    size: (u32, u32),
+    prep: Option<&crate::prep::Prepared>,
+) -> Result<FinalState> {
+    let cloth = clamp_ranges(best);
+    let final_scene =
+        Scene { spp: settings.final_spp.max(1), seed: settings.seed.wrapping_add(7), ..ev.scene().clone() };
+    let render = Prepared::new(&cloth, &final_scene, &RenderOptions::default()).render(&cloth.appearance);
+    let psnr_db = render.psnr_srgb(ev.target());
+    // A body texture is laid over the fit grid, so the pattern keeps that grid.
+    let reduced = if cloth.body_texture.is_some() { cloth.pattern.clone() } else { cloth.pattern.reduced() };
+    let mut out_cloth = cloth.clone();
+    out_cloth.pattern = reduced.clone();
+    let scene = output_scene(ev.scene(), grid, (reduced.n_e(), reduced.n_a()), size, prep);
+    let params = ParamFile { cloth: out_cloth, scene };
+    params.validate().context("fitted parameter file does not validate")?;
+    Ok(FinalState { cloth, params, render, psnr_db })
+}
+
+/// The cloth with its appearance and radii clamped to their Table-1 ranges (the barrier lets
+/// the optimizer step a little past them).
+fn clamp_ranges(cloth: &ClothParams) -> ClothParams {
+    let mut c = cloth.clone();
+    let v: Vec<f32> = c.appearance.to_vec().iter().zip(APPEARANCE_RANGES).map(|(x, r)| x.clamp(r.min, r.max)).collect();
+    c.appearance = Appearance::from_slice(&v);
+    c.r_e = c.r_e.clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
+    c.r_a = c.r_a.clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
+    c
+}
+
+/// Scene rendering the input's framing for a cloth with `reduced` pattern when the fit grid is
+/// `n_e × n_a` (unreduced).
+fn output_scene(
+    fit: &Scene,
+    n: (usize, usize),
+    reduced: (usize, usize),
+    size: (u32, u32),
+    prep: Option<&crate::prep::Prepared>,
+) -> Scene {
+    let (n_e, n_a) = n;
+    let (re, ra) = reduced;
+    let fx = n_a as f32 / ra as f32;
+    let fy = n_e as f32 / re as f32;
+    let mut s = fit.clone();
+    s.width = size.0.max(8);
+    s.height = size.1.max(8);
+    match prep {
+        None => {
+            s.camera.tiles = fx;
+            s.camera.offset = [0.5 * fx, 0.5 * fy];
+        }
+        Some(p) => {
+            // One repeat of the fit grid spans `crop.w` pixels of the rectified image.
+            let tiles_fit = s.width as f32 / p.crop.w.max(1) as f32;
+            s.camera.tiles = (tiles_fit * fx).clamp(0.25, 64.0);
+            // World x = 0 at crop.x; world y = ty at crop.y (image rows run downwards).
+            let cx = (s.width as f32 / 2.0 - p.crop.x as f32) / p.crop.w.max(1) as f32;
+            let cy = 1.0 - (s.height as f32 / 2.0 - p.crop.y as f32) / p.crop.h.max(1) as f32;
+            s.camera.offset = [(cx * fx).clamp(-1e4, 1e4), (cy * fy).clamp(-1e4, 1e4)];
+        }
+    }
+    s.spp = s.spp.max(16);
+    s
+}
 
 /// Nearest-neighbour upscale by an integer factor.
 fn upscale(img: &Image, f: u32) -> Image {
@@ -64,102 +153,146 @@ pub fn write_trace(res: &FitResult, path: &Path) -> Result<()> {
     register_font();
     let (w, h) = (900u32, 700u32);
     let mut buf = vec![255u8; (w * h * 3) as usize];
-    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting the trace: {e}");
     {
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| err(&e))?;
+        root.fill(&WHITE).map_err(plot_err)?;
         let (top, bottom) = root.split_vertically(350);
-        let hist = &res.history;
-        let n = hist.len().max(2) as f64;
-        let loss: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.loss as f64).max(1e-9))).collect();
-        let best: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.best_loss as f64).max(1e-9))).collect();
-        let (lo, hi) = loss.iter().chain(&best).fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.1), b.max(p.1)));
-        let (lo, hi) = if lo < hi { (lo * 0.8, hi * 1.25) } else { (1e-6, 1.0) };
-        let mut chart = ChartBuilder::on(&top)
-            .caption(format!("fit loss (MSE + barrier), PSNR {:.2} dB", res.psnr_db), ("sans-serif", 20))
-            .margin(12)
-            .x_label_area_size(35)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..n, (lo..hi).log_scale())
-            .map_err(|e| err(&e))?;
-        chart
-            .configure_mesh()
-            .x_desc("iteration")
-            .y_desc("loss")
-            .y_label_formatter(&|v| format!("{v:.1e}"))
-            .label_style(("sans-serif", 12))
-            .draw()
-            .map_err(|e| err(&e))?;
-        chart
-            .draw_series(LineSeries::new(loss.iter().copied(), BLUE.stroke_width(2)))
-            .map_err(|e| err(&e))?
-            .label("current")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
-        chart
-            .draw_series(LineSeries::new(best.iter().copied(), BLACK.stroke_width(1)))
-            .map_err(|e| err(&e))?
-            .label("best")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
-        let acc: Vec<(f64, f64)> = hist
-            .iter()
-            .filter(|l| l.accepted && l.proposal.starts_with("cell"))
-            .map(|l| (l.iter as f64, (l.loss as f64).max(1e-9)))
-            .collect();
-        chart
-            .draw_series(PointSeries::of_element(acc, 4, RED.filled(), &|c, s, st| {
-                EmptyElement::at(c) + Circle::new((0, 0), s, st)
-            }))
-            .map_err(|e| err(&e))?
-            .label("accepted pattern change")
-            .legend(|(x, y)| Circle::new((x + 10, y), 4, RED.filled()));
-        chart
-            .configure_series_labels()
-            .label_font(("sans-serif", 13))
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
-
-        let mut chart = ChartBuilder::on(&bottom)
-            .caption("parameters (normalised to their range)", ("sans-serif", 18))
-            .margin(12)
-            .x_label_area_size(35)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..n, 0.0..1.0f64)
-            .map_err(|e| err(&e))?;
-        chart.configure_mesh().x_desc("iteration").label_style(("sans-serif", 12)).draw().map_err(|e| err(&e))?;
-        type Getter = Box<dyn Fn(&super::IterLog) -> f64>;
-        let series: Vec<(&str, RGBColor, Getter)> = vec![
-            ("r_e", RGBColor(200, 0, 0), Box::new(|l| (l.r_e as f64 - 1.0) / 4.0)),
-            ("r_a", RGBColor(0, 120, 0), Box::new(|l| (l.r_a as f64 - 1.0) / 4.0)),
-            ("n_p", RGBColor(120, 0, 160), Box::new(|l| (l.n_p as f64 - 1.0) / 6.0)),
-            ("n_f", RGBColor(160, 100, 0), Box::new(|l| (l.n_f as f64 - 20.0) / 30.0)),
-            ("m_r", RGBColor(0, 0, 200), Box::new(|l| (l.appearance[0] as f64 - 0.2) / 0.6)),
-            ("r_b_e[0]", RGBColor(255, 80, 80), Box::new(|l| l.appearance[16] as f64)),
-            ("r_b_a[0]", RGBColor(80, 160, 255), Box::new(|l| l.appearance[19] as f64)),
-            ("T/T0", RGBColor(120, 120, 120), Box::new(|l| (l.temperature / super::anneal::T0).min(1.0))),
-        ];
-        for (name, col, get) in series {
-            let pts: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, get(l).clamp(0.0, 1.0))).collect();
-            chart
-                .draw_series(LineSeries::new(pts, col.stroke_width(2)))
-                .map_err(|e| err(&e))?
-                .label(name)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2)));
-        }
-        chart
-            .configure_series_labels()
-            .label_font(("sans-serif", 12))
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
-        root.present().map_err(|e| err(&e))?;
+        draw_loss(&top, res)?;
+        draw_parameters(&bottom, res)?;
+        root.present().map_err(plot_err)?;
     }
     write_png(path, w, h, buf)
 }
 
-/// Write every output of a fit into `dir` (created). `input` is the image the fit was given.
+/// A plotting error of `trace.png` as an error of the fit outputs.
+fn plot_err(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("plotting the trace: {e}")
+}
+
+/// The loss chart of `trace.png`: current and best loss (log scale), accepted cell changes.
+fn draw_loss<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>, res: &FitResult) -> Result<()> {
+    let hist = &res.history;
+    let n = hist.len().max(2) as f64;
+    let loss: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.loss as f64).max(1e-9))).collect();
+    let best: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, (l.best_loss as f64).max(1e-9))).collect();
+    let (lo, hi) = loss.iter().chain(&best).fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.1), b.max(p.1)));
+    let (lo, hi) = if lo < hi { (lo * 0.8, hi * 1.25) } else { (1e-6, 1.0) };
+    let mut chart = ChartBuilder::on(area)
+        .caption(format!("fit loss (MSE + barrier), PSNR {:.2} dB", res.psnr_db), ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(35)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..n, (lo..hi).log_scale())
+        .map_err(plot_err)?;
+    chart
+        .configure_mesh()
+        .x_desc("iteration")
+        .y_desc("loss")
+        .y_label_formatter(&|v| format!("{v:.1e}"))
+        .label_style(("sans-serif", 12))
+        .draw()
+        .map_err(plot_err)?;
+    chart
+        .draw_series(LineSeries::new(loss.iter().copied(), BLUE.stroke_width(2)))
+        .map_err(plot_err)?
+        .label("current")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+    chart
+        .draw_series(LineSeries::new(best.iter().copied(), BLACK.stroke_width(1)))
+        .map_err(plot_err)?
+        .label("best")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
+    let acc: Vec<(f64, f64)> = hist
+        .iter()
+        .filter(|l| l.accepted && l.proposal.is_some_and(|p| p.is_cell()))
+        .map(|l| (l.iter as f64, (l.loss as f64).max(1e-9)))
+        .collect();
+    chart
+        .draw_series(PointSeries::of_element(acc, 4, RED.filled(), &|c, s, st| {
+            EmptyElement::at(c) + Circle::new((0, 0), s, st)
+        }))
+        .map_err(plot_err)?
+        .label("accepted pattern change")
+        .legend(|(x, y)| Circle::new((x + 10, y), 4, RED.filled()));
+    chart
+        .configure_series_labels()
+        .label_font(("sans-serif", 13))
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_err)?;
+    Ok(())
+}
+
+/// The parameter chart of `trace.png`: radii, counts, a few appearance scalars and the
+/// temperature, each normalised to its range.
+fn draw_parameters<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>, res: &FitResult) -> Result<()> {
+    let hist = &res.history;
+    let n = hist.len().max(2) as f64;
+    let mut chart = ChartBuilder::on(area)
+        .caption("parameters (normalised to their range)", ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(35)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..n, 0.0..1.0f64)
+        .map_err(plot_err)?;
+    chart.configure_mesh().x_desc("iteration").label_style(("sans-serif", 12)).draw().map_err(plot_err)?;
+    type Getter = Box<dyn Fn(&super::joint::IterLog) -> f64>;
+    let series: Vec<(&str, RGBColor, Getter)> = vec![
+        ("r_e", RGBColor(200, 0, 0), Box::new(|l| (l.r_e as f64 - 1.0) / 4.0)),
+        ("r_a", RGBColor(0, 120, 0), Box::new(|l| (l.r_a as f64 - 1.0) / 4.0)),
+        ("n_p", RGBColor(120, 0, 160), Box::new(|l| (l.n_p as f64 - 1.0) / 6.0)),
+        ("n_f", RGBColor(160, 100, 0), Box::new(|l| (l.n_f as f64 - 20.0) / 30.0)),
+        ("m_r", RGBColor(0, 0, 200), Box::new(|l| (l.appearance[0] as f64 - 0.2) / 0.6)),
+        ("r_b_e[0]", RGBColor(255, 80, 80), Box::new(|l| l.appearance[16] as f64)),
+        ("r_b_a[0]", RGBColor(80, 160, 255), Box::new(|l| l.appearance[19] as f64)),
+        ("T/T0", RGBColor(120, 120, 120), Box::new(|l| (l.temperature / super::anneal::T0).min(1.0))),
+    ];
+    for (name, col, get) in series {
+        let pts: Vec<(f64, f64)> = hist.iter().map(|l| (l.iter as f64, get(l).clamp(0.0, 1.0))).collect();
+        chart
+            .draw_series(LineSeries::new(pts, col.stroke_width(2)))
+            .map_err(plot_err)?
+            .label(name)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .label_font(("sans-serif", 12))
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_err)?;
+    Ok(())
+}
+
+/// Every output of a fit in `dir`: with preparation, noise post-estimation (paper §6.3) — the
+/// residual rectified − regularized gives `noise.json`, whose synthesized noise is added to
+/// `fit.png` unless `add_noise` is false — then the files of [`write_outputs`] and the yarn
+/// geometry in `export/` (PLY + Mitsuba 3 scene). Returns warnings (no noise model).
+pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: Option<usize>) -> Result<Vec<String>> {
+    let mut warnings = Vec::new();
+    let mut noise = None;
+    if let Some(p) = &res.prep {
+        let rect = Image::from_rgb32f(&p.rectified);
+        let reg = Image::from_rgb32f(&p.regularized);
+        match crate::noise::residual(&rect, &reg).and_then(|r| crate::noise::NoiseModel::fit(&r)) {
+            Ok(model) => {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+                model.save(&dir.join("noise.json"))?;
+                noise = Some(model);
+            }
+            Err(e) => warnings.push(format!("no noise model ({e})")),
+        }
+    }
+    write_outputs(res, dir, threads, noise.as_ref().filter(|_| add_noise))?;
+    crate::export::export(&res.params, &dir.join("export"), &crate::export::ExportOptions::default())
+        .context("exporting the yarn geometry")?;
+    Ok(warnings)
+}
+
+/// Write the files of a fit into `dir` (created): `fit.json`, `prep.json` (with preparation),
+/// `log.jsonl`, `fit.png` (with `noise` added when given), `compare.png`, `trace.png`.
 pub fn write_outputs(
     res: &FitResult,
     dir: &Path,
@@ -185,4 +318,37 @@ pub fn write_outputs(
     write_compare(res, &dir.join("compare.png"))?;
     write_trace(res, &dir.join("trace.png"))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::target::fit_scene;
+    use crate::scene::LightRig;
+
+    #[test]
+    fn the_final_cloth_is_clamped_to_table_1() {
+        let mut c = crate::fit::demo::demo_cloth();
+        c.appearance.m_r = -1.0;
+        c.appearance.r_b_e = [1.2, 0.5, -0.1];
+        (c.r_e, c.r_a) = (RADIUS_RANGE.1 + 1.0, 4.0);
+        let k = clamp_ranges(&c);
+        assert_eq!(k.appearance.m_r, APPEARANCE_RANGES[0].min);
+        assert_eq!(k.appearance.r_b_e, [1.0, 0.5, 0.0]);
+        assert_eq!((k.r_e, k.r_a), (RADIUS_RANGE.1, 4.0));
+        k.validate().unwrap();
+    }
+
+    #[test]
+    fn the_output_scene_frames_the_input_with_the_reduced_repeat() {
+        let fit = fit_scene(4, 6, 10, 4, 1, &LightRig::default_rig());
+        // A 4×6 fit grid whose pattern reduces to 2×3: the 60×40 px input shows two repeats a side.
+        let s = output_scene(&fit, (4, 6), (2, 3), (60, 40), None);
+        assert_eq!((s.width, s.height, s.spp), (60, 40, 16));
+        assert_eq!(s.camera.tiles, 2.0);
+        assert_eq!(s.camera.offset, [1.0, 1.0]);
+        // Tiny inputs still render at least 8 px a side.
+        let s = output_scene(&fit, (4, 6), (4, 6), (3, 5), None);
+        assert_eq!((s.width, s.height, s.camera.tiles), (8, 8, 1.0));
+    }
 }

@@ -10,7 +10,7 @@
 //! polish reaches 30.8 dB in a few seconds (docs/benchmarks.md, "Fit").
 
 use super::anneal::{self, Adam, BARRIER_LAMBDA};
-use super::{total_loss, Evaluator};
+use super::evaluator::{total_loss, Evaluator};
 use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, N_APPEARANCE, RADIUS_RANGE};
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -311,7 +311,7 @@ mod tests {
 
     #[test]
     fn levenberg_marquardt_drives_a_perturbed_appearance_to_the_target() {
-        let truth = crate::fit::cli::demo_cloth();
+        let truth = crate::fit::demo::demo_cloth();
         let ev = noise_free(&truth);
         let mut cloth = truth.clone();
         let a = &mut cloth.appearance;
@@ -333,7 +333,7 @@ mod tests {
 
     #[test]
     fn radius_newton_moves_both_radii_towards_the_target() {
-        let truth = crate::fit::cli::demo_cloth();
+        let truth = crate::fit::demo::demo_cloth();
         let ev = noise_free(&truth);
         let mut cloth = truth.clone();
         (cloth.r_e, cloth.r_a) = (truth.r_e - 0.3, truth.r_a + 0.3);

@@ -1,0 +1,278 @@
+//! Discrete candidates of the fit: the default pattern, whole-pattern candidates (named weaves in
+//! every shift, the labellings read from the picture) and their ranking, single-cell toggles and
+//! greedy sweeps over them, the inverted twin, and the scan of one discrete parameter.
+
+use super::colours::pattern_loss;
+use super::evaluator::Evaluator;
+use super::target;
+use crate::params::ClothParams;
+use crate::pattern::WeavePattern;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Default twill (2/2, diagonal `(i + j) mod 4 < 2`) on an `n_e × n_a` grid, unreduced; plain
+/// weave where that twill would leave a yarn floating over the whole repeat.
+pub fn default_twill(n_e: usize, n_a: usize) -> WeavePattern {
+    let rows: Vec<Vec<bool>> = (0..n_e).map(|i| (0..n_a).map(|j| (i + j) % 4 < 2).collect()).collect();
+    let p = WeavePattern::from_rows_unreduced(&rows).expect("grid within limits");
+    if p.has_unbound_yarn() {
+        let rows: Vec<Vec<bool>> = (0..n_e).map(|i| (0..n_a).map(|j| (i + j) % 2 == 0).collect()).collect();
+        return WeavePattern::from_rows_unreduced(&rows).expect("grid within limits");
+    }
+    p
+}
+
+/// The pattern on its own grid, unreduced (a fixed pattern is fitted cell for cell).
+pub(crate) fn unreduced(p: &WeavePattern) -> WeavePattern {
+    WeavePattern::from_rows_unreduced(&p.rows()).expect("valid pattern")
+}
+
+/// The named weaves (presets and their 90° rotations) that fit an `n_e × n_a` grid (tiled when
+/// their repeat divides it), in every cyclic shift, without duplicates.
+pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
+    let mut out: Vec<WeavePattern> = Vec::new();
+    for name in crate::pattern::PRESETS {
+        let Ok(p) = WeavePattern::preset(name) else { continue };
+        for q in [p.rotated90(), p] {
+            if !n_e.is_multiple_of(q.n_e()) || !n_a.is_multiple_of(q.n_a()) {
+                continue;
+            }
+            for di in 0..q.n_e() {
+                for dj in 0..q.n_a() {
+                    let rows: Vec<Vec<bool>> =
+                        (0..n_e).map(|i| (0..n_a).map(|j| q.get(i + di, j + dj)).collect()).collect();
+                    if let Ok(c) = WeavePattern::from_rows_unreduced(&rows) {
+                        if !out.contains(&c) {
+                            out.push(c);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Candidate ranking of the pattern pre-estimation: the cloth's own pattern, the labellings read
+/// from the picture ([`picture_labellings`]) and every named weave that fits the grid, in every
+/// shift, each scored with its own colour estimate. Returns the `keep` best patterns, best first,
+/// then the best named weave and the labellings read from the picture if not among them.
+pub(crate) fn rank_candidates(
+    ev: &Evaluator,
+    cloth: &ClothParams,
+    c: u32,
+    keep: usize,
+    stop: &AtomicBool,
+) -> Vec<WeavePattern> {
+    let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+    let read = picture_labellings(ev, n_e, n_a, c);
+    let templates = template_candidates(n_e, n_a);
+    let cands = [cloth.pattern.clone()].into_iter().chain(read.iter().cloned()).chain(templates.iter().cloned());
+    let mut scored: Vec<(f32, WeavePattern)> = Vec::new();
+    for p in cands {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        if scored.iter().any(|(_, q)| *q == p) {
+            continue;
+        }
+        let mut cand = cloth.clone();
+        cand.pattern = p;
+        let l = pattern_loss(ev, &mut cand, c);
+        scored.push((l, cand.pattern));
+    }
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // The best named weave always goes on to the warm-up: where the two colours are close, a
+    // noisy colour clustering can out-score the true weave on the coarse layout.
+    // Likewise every labelling read from the picture: on a random weave one of them is usually
+    // within a few cells of the truth, while the coarse layout at the default appearance can rank
+    // a shifted satin or twill above it, and cannot tell a colour labelling from its inverse.
+    let best_template = scored.iter().find(|(_, p)| templates.contains(p)).map(|(_, p)| p.clone());
+    let mut out: Vec<WeavePattern> = scored.into_iter().take(keep.max(1)).map(|(_, p)| p).collect();
+    for t in best_template.into_iter().chain(read) {
+        if !out.contains(&t) {
+            out.push(t);
+        }
+    }
+    out
+}
+
+/// Whole-pattern candidates for an `n_e × n_a` grid: the labellings read from the target (see
+/// [`picture_labellings`]), then every named weave that fits (see [`template_candidates`]).
+pub(crate) fn candidate_patterns(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
+    let mut cands = picture_labellings(ev, n_e, n_a, c);
+    cands.extend(template_candidates(n_e, n_a));
+    cands
+}
+
+/// The cells read from the target: the yarn-direction labelling
+/// ([`target::orientation_labelling`]) and both labellings of the colour clusters
+/// ([`target::colour_clusters`]), those that leave no yarn floating.
+fn picture_labellings(ev: &Evaluator, n_e: usize, n_a: usize, c: u32) -> Vec<WeavePattern> {
+    let mut out: Vec<WeavePattern> = Vec::new();
+    let labellings = target::orientation_labelling(ev.target(), n_e, n_a, c).into_iter();
+    let clusters = target::colour_clusters(ev.target(), n_e, n_a, c).into_iter().flat_map(|p| [p.inverted(), p]);
+    for p in labellings.chain(clusters) {
+        if !p.has_unbound_yarn() && !out.contains(&p) {
+            out.push(p);
+        }
+    }
+    out
+}
+
+/// The cloth with cell `(i, j)` toggled; `None` when that leaves a yarn floating over the whole
+/// repeat (not a weave) and the cloth had none.
+pub(crate) fn toggled_cell(cloth: &ClothParams, i: usize, j: usize) -> Option<ClothParams> {
+    let mut cand = cloth.clone();
+    cand.pattern = cloth.pattern.toggled(i, j);
+    (!cand.pattern.has_unbound_yarn() || cloth.pattern.has_unbound_yarn()).then_some(cand)
+}
+
+/// The cloth seen with weft and warp roles exchanged where it matters for the picture: every cell
+/// flipped, and the two families' body colours and radii swapped. A pattern and this twin give
+/// nearly the same cell colours, so single-cell toggles cannot get from one to the other.
+pub(crate) fn inverted_twin(cloth: &ClothParams) -> ClothParams {
+    let mut c = cloth.clone();
+    c.pattern = cloth.pattern.inverted();
+    let a = &mut c.appearance;
+    std::mem::swap(&mut a.r_b_e, &mut a.r_b_a);
+    std::mem::swap(&mut a.s_b_e, &mut a.s_b_a);
+    std::mem::swap(&mut c.r_e, &mut c.r_a);
+    c
+}
+
+/// Greedy pattern sweeps at temperature 0: toggle each cell, keep it when `loss` drops; repeat
+/// until a sweep changes nothing. Returns the final loss.
+pub(crate) fn greedy_sweeps(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    max_sweeps: usize,
+    stop: &AtomicBool,
+    loss: impl Fn(&Evaluator, &mut ClothParams) -> f32,
+) -> f32 {
+    let mut cur = loss(ev, cloth);
+    for _ in 0..max_sweeps {
+        let mut changed = false;
+        for i in 0..cloth.pattern.n_e() {
+            for j in 0..cloth.pattern.n_a() {
+                if stop.load(Ordering::Relaxed) {
+                    return cur;
+                }
+                let Some(mut cand) = toggled_cell(cloth, i, j) else { continue };
+                let l = loss(ev, &mut cand);
+                if l < cur {
+                    *cloth = cand;
+                    cur = l;
+                    changed = true;
+                }
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    cur
+}
+
+/// The value among `values` whose variant of `base` (`set` applied) has the lowest `loss`, with
+/// that loss (the first on ties); `None` when there is none or the stop flag was set first.
+pub(crate) fn best_variant<T: Clone>(
+    ev: &Evaluator,
+    base: &ClothParams,
+    values: impl IntoIterator<Item = T>,
+    set: impl Fn(&mut ClothParams, T),
+    loss: impl Fn(&Evaluator, &mut ClothParams) -> f32,
+    stop: &AtomicBool,
+) -> Option<(f32, T)> {
+    let mut best: Option<(f32, T)> = None;
+    for v in values {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        let mut cand = base.clone();
+        set(&mut cand, v.clone());
+        let l = loss(ev, &mut cand);
+        if best.as_ref().is_none_or(|b| l < b.0) {
+            best = Some((l, v));
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::demo::demo_cloth;
+    use crate::fit::target::fit_scene;
+    use crate::image_io::Image;
+    use crate::scene::LightRig;
+
+    #[test]
+    fn inverted_twin_swaps_roles_and_is_its_own_inverse() {
+        let truth = demo_cloth();
+        let twin = inverted_twin(&truth);
+        assert_eq!(twin.pattern, truth.pattern.inverted());
+        assert_eq!(twin.appearance.r_b_e, truth.appearance.r_b_a);
+        assert_eq!(twin.appearance.s_b_a, truth.appearance.s_b_e);
+        assert_eq!((twin.r_e, twin.r_a), (truth.r_a, truth.r_e));
+        let back = inverted_twin(&twin);
+        assert_eq!(back.pattern, truth.pattern);
+        assert_eq!(back.appearance.to_vec(), truth.appearance.to_vec());
+    }
+
+    #[test]
+    fn default_twill_falls_back_to_plain_where_a_yarn_would_float() {
+        // On 4 × 4 the 2/2 diagonal itself: two warp-on-top cells per row, shifted by one per row.
+        let p = default_twill(4, 4);
+        assert!(!p.has_unbound_yarn());
+        assert!((0..4).all(|i| (0..4).all(|j| p.get(i, j) == ((i + j) % 4 < 2))), "{p}");
+        // On 2 × 2 the twill diagonal makes a row of ones: plain instead.
+        let p = default_twill(2, 2);
+        assert!(!p.has_unbound_yarn());
+        assert!(p.reduced().equivalent(&WeavePattern::preset("plain").unwrap()));
+        assert_eq!((default_twill(3, 5).n_e(), default_twill(3, 5).n_a()), (3, 5));
+    }
+
+    #[test]
+    fn toggles_that_leave_a_floating_yarn_are_refused() {
+        let mut cloth = demo_cloth();
+        cloth.pattern = WeavePattern::parse("10/01").unwrap();
+        // Toggling (0, 1) of plain makes a row of ones: weft 0 floats over the whole repeat.
+        assert!(toggled_cell(&cloth, 0, 1).is_none());
+        let mut wide = cloth.clone();
+        let diagonal = |k: usize| (0..3).map(|j| j == k).collect::<Vec<bool>>();
+        wide.pattern = WeavePattern::from_rows_unreduced(&[diagonal(0), diagonal(1), diagonal(2)]).unwrap();
+        let t = toggled_cell(&wide, 0, 1).expect("a weave");
+        assert_eq!(t.pattern, wide.pattern.toggled(0, 1));
+    }
+
+    #[test]
+    fn best_variant_picks_the_lowest_loss_and_greedy_sweeps_never_raise_it() {
+        let cloth = demo_cloth();
+        let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+        let ev =
+            Evaluator::new(fit_scene(n_e, n_a, 4, 1, 3, &LightRig::default_rig()), Image::filled(16, 16, [0.2; 3]), 2);
+        let stop = AtomicBool::new(false);
+        // A loss that counts warp-on-top cells: the fewest wins.
+        let ones = |_: &Evaluator, c: &mut ClothParams| {
+            (0..c.pattern.n_e())
+                .flat_map(|i| (0..c.pattern.n_a()).map(move |j| (i, j)))
+                .filter(|&(i, j)| c.pattern.get(i, j))
+                .count() as f32
+        };
+        let cands = template_candidates(n_e, n_a);
+        let (l, _) = best_variant(&ev, &cloth, cands.clone(), |c, p| c.pattern = p, ones, &stop).unwrap();
+        for q in &cands {
+            let mut c = cloth.clone();
+            c.pattern = q.clone();
+            assert!(ones(&ev, &mut c) >= l);
+        }
+        let mut swept = cloth.clone();
+        let before = ones(&ev, &mut cloth.clone());
+        let after = greedy_sweeps(&ev, &mut swept, 3, &stop, ones);
+        assert!(after < before && !swept.pattern.has_unbound_yarn(), "{before} -> {after}");
+        assert_eq!(after, ones(&ev, &mut swept));
+        // A stop flag set beforehand: nothing is scanned.
+        stop.store(true, Ordering::Relaxed);
+        assert!(best_variant(&ev, &cloth, cands, |c, p| c.pattern = p, ones, &stop).is_none());
+    }
+}

@@ -1,0 +1,204 @@
+//! Finish of the joint runs: the annealed best against the rivals the annealer's small steps could
+//! not reach (the other runs, the starts, the warmed-up candidates, the best whole-pattern
+//! candidate re-ranked, an `n_p`/`n_f` scan, the inverted twin), each with the same appearance
+//! descent; then single-cell contests; then the winner's appearance restarts and polish, last at
+//! `fine_spp`.
+
+use super::candidates::{best_variant, candidate_patterns, inverted_twin, toggled_cell};
+use super::evaluator::{state_loss, Evaluator};
+use super::joint::JointRuns;
+use super::options::FinishOptions;
+use super::preestimate::PreEstimate;
+use super::{refine, Stage};
+use crate::params::{ClothParams, NF_RANGE, NP_RANGE};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Radius rounds of the winner's polish at the fit's spp.
+const POLISH_ROUNDS: usize = 4;
+/// Appearance restarts of the winner (see `refine::appearance_restarts`).
+const RESTARTS: usize = 6;
+/// Radius rounds of the winner's polish at `fine_spp`.
+const FINE_ROUNDS: usize = 1;
+/// Most single-cell contests at the end of the finish.
+const TOGGLE_ROUNDS: usize = 3;
+/// Cell toggles per contest that get their own appearance descent.
+const TOGGLE_FINALISTS: usize = 4;
+/// Samples per pixel of the cheap traces that rank rivals and toggles.
+const QUICK_SPP: u32 = 2;
+
+/// The finished best state of the joint runs (`best`, their lowest state): the finish proper when
+/// enabled and the runs went through (not stopped, at least one iteration each), else `best`.
+pub(crate) fn finish_runs(
+    st: &Stage,
+    opts: &FinishOptions,
+    best: &ClothParams,
+    joint: &JointRuns,
+    pre: &PreEstimate,
+) -> ClothParams {
+    if !(opts.enabled && !joint.stopped && joint.per_run > 0) {
+        return best.clone();
+    }
+    let others: Vec<ClothParams> = joint
+        .runs
+        .iter()
+        .skip(1)
+        .map(|r| r.1.clone())
+        .chain(pre.starts.iter().cloned())
+        .chain(pre.warmed.iter().cloned())
+        .collect();
+    finish(st, opts.lm_iters, best, &others).1
+}
+
+/// Finish of `best` against `others` (the other runs' best states, the runs' starts and the
+/// warmed-up candidates): a state found early was scored with a less converged appearance than
+/// one found late, so every rival gets the same appearance descent (`lm_iters` iterations) as the
+/// best and the lowest loss wins; then up to [`TOGGLE_ROUNDS`] single-cell contests
+/// ([`toggle_contest`]). Returns the loss and the cloth.
+fn finish(st: &Stage, lm_iters: usize, best: &ClothParams, others: &[ClothParams]) -> (f32, ClothParams) {
+    let (ev, stop) = (st.ev, &*st.control.stop);
+    let quick = ev.resampled(QUICK_SPP, st.render.seed);
+    let finals = rivals(st, &quick, best, others);
+    let mut chosen: Option<(f32, ClothParams)> = None;
+    for mut c in finals {
+        let l = refine::polish(ev, &mut c, 0, lm_iters, stop);
+        if chosen.as_ref().is_none_or(|w| l < w.0) {
+            chosen = Some((l, c));
+        }
+    }
+    let (mut loss, mut best_cloth) = chosen.unwrap_or_else(|| (f32::INFINITY, best.clone()));
+    if st.cells {
+        for _ in 0..TOGGLE_ROUNDS {
+            match toggle_contest(ev, &quick, &best_cloth, loss, lm_iters, stop) {
+                Some((l, c)) => (loss, best_cloth) = (l, c),
+                None => break,
+            }
+        }
+    }
+    (loss, best_cloth)
+}
+
+/// `best` and its rivals: `others` (each with its own appearance: a pattern's inverse comes with
+/// swapped colours), then, with the best's converged appearance, the best whole-pattern
+/// candidate re-ranked on `quick`, an `n_p`/`n_f` scan and the inverted twin. No two share their
+/// discrete state.
+fn rivals(st: &Stage, quick: &Evaluator, best: &ClothParams, others: &[ClothParams]) -> Vec<ClothParams> {
+    let stop = &*st.control.stop;
+    let (n_e, n_a) = (best.pattern.n_e(), best.pattern.n_a());
+    let discrete = |c: &ClothParams| (c.pattern.clone(), c.n_p, c.n_f);
+    let mut finals = vec![best.clone()];
+    for o in others {
+        if !finals.iter().any(|f| discrete(f) == discrete(o)) {
+            finals.push(o.clone());
+        }
+    }
+    if st.cells {
+        let cands =
+            candidate_patterns(quick, n_e, n_a, st.render.px_per_cell).into_iter().chain([best.pattern.clone()]);
+        let top = best_variant(quick, best, cands, |cl, p| cl.pattern = p, state_loss, stop);
+        if let Some((_, p)) = top.filter(|(_, p)| finals.iter().all(|f| f.pattern != *p)) {
+            let mut c2 = best.clone();
+            c2.pattern = p;
+            finals.push(c2);
+        }
+    }
+    // n_p and n_f scanned over Table 1 with the converged appearance (the annealer moves them
+    // by small steps, and a wrong ply count is a deep local minimum).
+    let mut scan = best.clone();
+    if let Some((_, n)) = best_variant(quick, &scan, NP_RANGE.0..=NP_RANGE.1, |cl, n| cl.n_p = n, state_loss, stop) {
+        scan.n_p = n;
+    }
+    let nf = (NF_RANGE.0..=NF_RANGE.1).step_by(5);
+    if let Some((_, n)) = best_variant(quick, &scan, nf, |cl, n| cl.n_f = n, state_loss, stop) {
+        scan.n_f = n;
+    }
+    if scan.n_p != best.n_p || scan.n_f != best.n_f {
+        finals.push(scan);
+    }
+    if st.cells && !best.pattern.inverted().has_unbound_yarn() {
+        finals.push(inverted_twin(best));
+    }
+    finals
+}
+
+/// One contest of single-cell changes: every cell toggle of `cloth` is scored with its appearance
+/// held (a cheap trace on `quick`), then the [`TOGGLE_FINALISTS`] best get a Levenberg–Marquardt
+/// descent of the appearance on `ev` and compete with `loss`, the cloth's own polished loss.
+/// With the appearance held, a wrong cell whose yarn colours are close (or that the appearance
+/// has adapted to) costs little to keep, so a greedy pass at fixed appearance can leave it.
+/// Returns the winning toggle, if one beats `loss`.
+fn toggle_contest(
+    ev: &Evaluator,
+    quick: &Evaluator,
+    cloth: &ClothParams,
+    loss: f32,
+    lm_iters: usize,
+    stop: &AtomicBool,
+) -> Option<(f32, ClothParams)> {
+    let mut scored: Vec<(f32, ClothParams)> = Vec::new();
+    for i in 0..cloth.pattern.n_e() {
+        for j in 0..cloth.pattern.n_a() {
+            if stop.load(Ordering::Relaxed) {
+                return None;
+            }
+            let Some(mut cand) = toggled_cell(cloth, i, j) else { continue };
+            scored.push((state_loss(quick, &mut cand), cand));
+        }
+    }
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut best: Option<(f32, ClothParams)> = None;
+    for (_, mut cand) in scored.into_iter().take(TOGGLE_FINALISTS) {
+        let l = refine::polish(ev, &mut cand, 0, lm_iters, stop);
+        if l < loss && best.as_ref().is_none_or(|b| l < b.0) {
+            best = Some((l, cand));
+        }
+    }
+    best
+}
+
+/// The winner's last polish (when `opts.fine_spp > 0`): appearance restarts, a polish to
+/// convergence at the fit's spp, then one at `fine_spp` (another sample set).
+pub(crate) fn polish_winner(st: &Stage, opts: &FinishOptions, cloth: &mut ClothParams) {
+    if opts.fine_spp == 0 {
+        return;
+    }
+    let (ev, stop, seed) = (st.ev, &*st.control.stop, st.render.seed);
+    refine::appearance_restarts(ev, cloth, RESTARTS, 2 * opts.lm_iters, seed, stop);
+    refine::polish(ev, cloth, POLISH_ROUNDS, opts.lm_iters, stop);
+    let fine = ev.resampled(opts.fine_spp, seed.wrapping_add(3));
+    refine::polish(&fine, cloth, FINE_ROUNDS, opts.lm_iters, stop);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::demo::demo_cloth;
+    use crate::fit::options::{Control, RenderSettings};
+    use crate::fit::target::fit_scene;
+    use crate::render::{Prepared, RenderOptions};
+    use std::time::Instant;
+
+    #[test]
+    fn the_finish_undoes_a_wrong_cell_and_never_loses_to_its_start() {
+        let truth = demo_cloth();
+        let render = RenderSettings { px_per_cell: 6, spp: 2, ..RenderSettings::default() };
+        let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
+        let scene = fit_scene(n_e, n_a, render.px_per_cell, render.spp, render.seed, &render.lights);
+        let target = Prepared::new(&truth, &scene, &RenderOptions::default()).render(&truth.appearance);
+        let ev = Evaluator::new(scene, target, 2);
+        let control = Control::default();
+        let st = Stage { ev: &ev, render: &render, control: &control, cells: true, clock: Instant::now() };
+        let wrong = toggled_cell(&truth, 1, 2).expect("a weave");
+        let start = refine::polish(&ev, &mut wrong.clone(), 0, 4, &control.stop);
+        let (loss, won) = finish(&st, 4, &wrong, &[]);
+        assert!(loss <= start, "{loss} > {start}");
+        assert_eq!(won.pattern, truth.pattern, "the wrong cell stayed: {}", won.pattern);
+        // Rivals: the start itself first, then distinct discrete states only.
+        let r = rivals(&st, &ev.resampled(QUICK_SPP, 1), &wrong, &[wrong.clone(), truth.clone()]);
+        assert_eq!(r[0], wrong);
+        assert!(r
+            .iter()
+            .skip(1)
+            .all(|c| (c.pattern.clone(), c.n_p, c.n_f) != (wrong.pattern.clone(), wrong.n_p, wrong.n_f)));
+        assert!(r.contains(&inverted_twin(&wrong)));
+    }
+}

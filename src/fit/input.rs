@@ -1,0 +1,142 @@
+//! The fit's input stage: check the image, prepare it (rectify, regularize, find the grid and the
+//! minimum-pattern crop) or take it as one repeat, settle the yarn grid, and resample the crop to
+//! the fit's pixels per cell.
+
+use super::options::InputOptions;
+use super::target::{detect_grid, resample};
+use crate::image_io::Image;
+use crate::pattern::MAX_SIDE;
+use anyhow::{bail, Context, Result};
+
+/// Smallest accepted input side in pixels.
+pub const MIN_INPUT_SIDE: u32 = 16;
+
+/// Check an input image: size and finite values.
+pub fn check_input(img: &Image) -> Result<()> {
+    if img.width < MIN_INPUT_SIDE || img.height < MIN_INPUT_SIDE {
+        bail!(
+            "input image is {}×{} px; the fit needs at least {MIN_INPUT_SIDE}×{MIN_INPUT_SIDE} (one pattern repeat at a few pixels per yarn)",
+            img.width,
+            img.height
+        );
+    }
+    img.check_finite("input image").map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(())
+}
+
+/// The target of a fit.
+pub(crate) struct FitTarget {
+    /// One repeat of the input (the minimum-pattern crop after preparation).
+    pub crop: Image,
+    /// Preparation result (when prep ran).
+    pub prep: Option<crate::prep::Prepared>,
+    /// Yarn grid `(n_e, n_a)` of the crop.
+    pub grid: (usize, usize),
+    /// The crop resampled to the fit's pixels per cell.
+    pub image: Image,
+    /// Warnings (a fixed pattern that disagrees with the grid prep found).
+    pub warnings: Vec<String>,
+}
+
+/// The target of `input` at `c` pixels per cell (see the module docs).
+pub(crate) fn prepare_target(input: &Image, opts: &InputOptions, c: u32) -> Result<FitTarget> {
+    let (crop, prep, found) = if opts.prep {
+        let p = crate::prep::prepare(&input.to_rgb32f(), &crate::prep::PrepOptions::default())
+            .context("preparing the input (use --no-prep for a clean one-repeat crop)")?;
+        let reg = Image::from_rgb32f(&p.regularized);
+        let crop = reg.crop(p.crop.x, p.crop.y, p.crop.w, p.crop.h);
+        let g = (p.n_e, p.n_a);
+        (crop, Some(p), Some(g))
+    } else {
+        (input.clone(), None, opts.grid)
+    };
+    let mut warnings = Vec::new();
+    let grid = settle_grid(&crop, found, opts, &mut warnings)?;
+    let image = resample(&crop, grid.1 as u32 * c, grid.0 as u32 * c);
+    Ok(FitTarget { crop, prep, grid, image, warnings })
+}
+
+/// The yarn grid: a fixed pattern's (with a warning where prep found another), else the one
+/// found by prep or given, else the one detected in `crop`; refused outside `1..=MAX_SIDE`, or
+/// when detected with a side under 2 (no weave fits).
+fn settle_grid(
+    crop: &Image,
+    found: Option<(usize, usize)>,
+    opts: &InputOptions,
+    warnings: &mut Vec<String>,
+) -> Result<(usize, usize)> {
+    let mut grid = found;
+    if let Some(p) = &opts.pattern {
+        if let Some(g) = grid {
+            if g != (p.n_e(), p.n_a()) && opts.prep {
+                warnings.push(format!(
+                    "--pattern is {}×{} but prep found a {}×{} grid; using the pattern's grid",
+                    p.n_e(),
+                    p.n_a(),
+                    g.0,
+                    g.1
+                ));
+            }
+        }
+        grid = Some((p.n_e(), p.n_a()));
+    }
+    let (n_e, n_a) = match grid {
+        Some(g) => g,
+        None => detect_grid(crop)
+            .context("cannot detect the yarn grid of the input; pass --grid NExNA or --pattern, or run with prep")?,
+    };
+    if grid.is_none() && (n_e < 2 || n_a < 2) {
+        bail!(
+            "the yarn grid detected in the input is {n_e}×{n_a}, which cannot hold a weave (every yarn would float); \
+             pass --grid NExNA or --pattern, or run with prep"
+        );
+    }
+    if n_e == 0 || n_a == 0 || n_e > MAX_SIDE || n_a > MAX_SIDE {
+        bail!("grid {n_e}×{n_a} is outside 1..={MAX_SIDE}");
+    }
+    Ok((n_e, n_a))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pattern::WeavePattern;
+
+    #[test]
+    fn small_or_non_finite_inputs_are_refused() {
+        let e = check_input(&Image::filled(8, 20, [0.5; 3])).unwrap_err().to_string();
+        assert!(e.contains("8×20") && e.contains("at least 16×16"), "{e}");
+        let mut img = Image::filled(16, 16, [0.5; 3]);
+        assert!(check_input(&img).is_ok());
+        img.data[3][0] = f32::INFINITY;
+        assert!(check_input(&img).is_err());
+    }
+
+    #[test]
+    fn a_fixed_pattern_sets_the_grid_and_a_given_grid_is_checked() {
+        let crop = Image::filled(32, 32, [0.5; 3]);
+        let opts =
+            InputOptions { prep: false, grid: Some((9, 9)), pattern: Some(WeavePattern::preset("satin5").unwrap()) };
+        let mut w = Vec::new();
+        assert_eq!(settle_grid(&crop, opts.grid, &opts, &mut w).unwrap(), (5, 5));
+        assert!(w.is_empty(), "no warning without prep: {w:?}");
+        let prep = InputOptions { prep: true, ..opts };
+        settle_grid(&crop, Some((4, 4)), &prep, &mut w).unwrap();
+        assert!(w[0].contains("5×5") && w[0].contains("4×4"), "{w:?}");
+        let big = InputOptions { prep: false, grid: Some((2, MAX_SIDE + 1)), pattern: None };
+        assert!(settle_grid(&crop, big.grid, &big, &mut w).unwrap_err().to_string().contains("outside"));
+        // A uniform image has no yarn grid to detect.
+        let none = InputOptions { prep: false, grid: None, pattern: None };
+        assert!(settle_grid(&crop, None, &none, &mut w).unwrap_err().to_string().contains("grid"));
+    }
+
+    #[test]
+    fn the_target_is_resampled_to_the_cells() {
+        let img = Image::filled(40, 20, [0.25; 3]);
+        let opts = InputOptions { prep: false, grid: Some((2, 4)), pattern: None };
+        let t = prepare_target(&img, &opts, 6).unwrap();
+        assert_eq!((t.grid, t.image.width, t.image.height), ((2, 4), 24, 12));
+        assert!(t.prep.is_none() && t.crop.width == 40);
+        assert!(t.image.data.iter().all(|p| (p[0] - 0.25).abs() < 1e-6));
+    }
+}

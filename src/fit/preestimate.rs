@@ -1,0 +1,287 @@
+//! Pre-estimation (paper §5): from the default cloth (twill or the fixed pattern, grey
+//! appearance) to the starts of the joint runs. Whole-pattern candidates are ranked on the coarse
+//! colour layout (`candidates::rank_candidates`); the network sets the parameters it predicts
+//! (when a model is given); every shortlisted pattern is warmed up — radius and ply scans, the
+//! colour estimate converted through the renderer, a short Levenberg–Marquardt descent per shape
+//! variant, a polish of the best — and the best warmed-up candidates, each after a greedy cell
+//! sweep, become the starts.
+
+use super::candidates::{best_variant, greedy_sweeps, rank_candidates};
+use super::colours::{estimate_colours, pattern_loss};
+use super::evaluator::{state_loss, Evaluator};
+use super::options::PreOptions;
+use super::target::{fit_scene, resample, tile};
+use super::{refine, Stage};
+use crate::image_io::Image;
+use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, RADIUS_RANGE};
+use crate::pattern::WeavePattern;
+use anyhow::{Context, Result};
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Radius rounds of a warm-up polish.
+const WARMUP_ROUNDS: usize = 1;
+
+/// Grey default appearance of the pre-estimation (paper §5.1).
+pub fn grey_appearance() -> Appearance {
+    Appearance {
+        r_s: [0.5; 3],
+        r_b_e: [0.5; 3],
+        r_b_a: [0.5; 3],
+        s_b_e: [0.5; 3],
+        s_b_a: [0.5; 3],
+        ..Appearance::default()
+    }
+}
+
+/// The cloth the fit starts from: `pattern`, 3 plies of 30 fibers, radii 4, grey appearance.
+pub(crate) fn default_cloth(pattern: WeavePattern) -> ClothParams {
+    ClothParams { pattern, n_p: 3, n_f: 30, r_e: 4.0, r_a: 4.0, appearance: grey_appearance(), body_texture: None }
+}
+
+/// What the pre-estimation hands on.
+pub(crate) struct PreEstimate {
+    /// Starts of the joint runs, best first.
+    pub starts: Vec<ClothParams>,
+    /// Every warmed-up candidate, best first (rivals in the finish).
+    pub warmed: Vec<ClothParams>,
+    /// The cloth after pre-estimation (the first start).
+    pub initial: ClothParams,
+}
+
+/// Pre-estimation from `cloth` for the target `crop` (the one-repeat crop before resampling; the
+/// fit's evaluator `st.ev` holds it at the fit's resolution). Without `opts.enabled`, `cloth` is
+/// the only start. Warnings (a network that failed on the input) go to `warnings`.
+pub(crate) fn pre_estimate(
+    st: &Stage,
+    opts: &PreOptions,
+    crop: &Image,
+    cloth: ClothParams,
+    warnings: &mut Vec<String>,
+) -> Result<PreEstimate> {
+    if !opts.enabled {
+        return Ok(PreEstimate { starts: vec![cloth.clone()], warmed: Vec::new(), initial: cloth });
+    }
+    let (stop, c) = (&*st.control.stop, st.render.px_per_cell);
+    let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+    let cp = if opts.px_per_cell == 0 { c } else { opts.px_per_cell };
+    let pre_scene = fit_scene(n_e, n_a, cp, opts.spp, st.render.seed, &st.render.lights);
+    let pre_ev = st.ev.sibling(pre_scene, resample(crop, n_a as u32 * cp, n_e as u32 * cp), st.render.loss_block);
+    let shortlist = if st.cells {
+        // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
+        // depends on n_p, n_f and the appearance, which are still at their defaults here.
+        let coarse = pre_ev.sibling(pre_ev.scene().clone(), pre_ev.target().clone(), (cp / 2).max(1));
+        rank_candidates(&coarse, &cloth, cp, opts.shortlist, stop)
+    } else {
+        vec![cloth.pattern.clone()]
+    };
+    let mut cloth = cloth;
+    if let Some(m) = &opts.model {
+        apply_model(&mut cloth, crop, m, warnings)?;
+    }
+    // Warm-up: every shortlisted pattern gets its shape scans, colour estimate and a polish at
+    // the fit's resolution; the best goes on. Candidates are compared only once their appearance
+    // fits: with the grey default, the loss is too flat in the pattern to rank them.
+    st.control.progress.begin("pre-estimate", shortlist.len() as u64);
+    let mut warm: Vec<(f32, ClothParams)> = Vec::new();
+    for p in shortlist {
+        warm.push(warm_up(st, &pre_ev, &cloth, p, cp, opts.warmup));
+        st.control.progress.advance(1);
+    }
+    st.control.progress.finish();
+    warm.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let warmed: Vec<ClothParams> = warm.iter().map(|w| w.1.clone()).collect();
+    let mut starts = choose_starts(warm, opts.starts, opts.start_margin);
+    if st.cells {
+        for s in starts.iter_mut() {
+            greedy_sweeps(st.ev, s, opts.max_sweeps, stop, state_loss);
+        }
+    }
+    let initial = starts.first().cloned().unwrap_or(cloth);
+    Ok(PreEstimate { starts, warmed, initial })
+}
+
+/// Load the pre-estimator `model` and apply its prediction on `crop` to `cloth`; a prediction
+/// that fails on the input leaves the defaults with a warning.
+fn apply_model(cloth: &mut ClothParams, crop: &Image, model: &Path, warnings: &mut Vec<String>) -> Result<()> {
+    let net = crate::net::PreEstimator::load(model)
+        .with_context(|| format!("loading the pre-estimator {} (given with --model)", model.display()))?;
+    // The network was trained on views of 1.5–4 repeats: show it the repeat tiled 3×3.
+    match net.predict(&tile(crop, 3, 3).to_rgb32f()) {
+        Ok(pred) => apply_network(cloth, &pred),
+        Err(e) => warnings.push(format!("pre-estimator failed on the input ({e}); using defaults")),
+    }
+    Ok(())
+}
+
+/// Apply a pre-estimator prediction (everything but the pattern and the analytic colours).
+fn apply_network(cloth: &mut ClothParams, pred: &crate::net::Prediction) {
+    let mut v = cloth.appearance.to_vec();
+    for (k, r) in APPEARANCE_RANGES.iter().enumerate() {
+        if r.name.starts_with("r_b_") || r.name.starts_with("r_s[") {
+            continue;
+        }
+        if let Some(x) = pred.get(r.name) {
+            if x.is_finite() {
+                v[k] = (x as f32).clamp(r.min, r.max);
+            }
+        }
+    }
+    cloth.appearance = Appearance::from_slice(&v);
+    if let Some(x) = pred.get("n_p").filter(|x| x.is_finite()) {
+        cloth.n_p = (x.round() as u32).clamp(NP_RANGE.0, NP_RANGE.1);
+    }
+    if let Some(x) = pred.get("n_f").filter(|x| x.is_finite()) {
+        cloth.n_f = (x.round() as u32).clamp(NF_RANGE.0, NF_RANGE.1);
+    }
+    if let Some(x) = pred.get("r_e").filter(|x| x.is_finite()) {
+        cloth.r_e = (x as f32).clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
+    }
+    if let Some(x) = pred.get("r_a").filter(|x| x.is_finite()) {
+        cloth.r_a = (x as f32).clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
+    }
+}
+
+/// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and
+/// shading, enough to hide the pattern's signal, so each candidate gets its own. The scans' loss
+/// (default appearance but the colours, on `pre_ev` at `cp` px per cell) does not rank the shape
+/// variants reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations)
+/// of the appearance on the fit's evaluator, and the best one is polished. Returns the polished
+/// loss and cloth.
+fn warm_up(
+    st: &Stage,
+    pre_ev: &Evaluator,
+    cloth: &ClothParams,
+    p: WeavePattern,
+    cp: u32,
+    iters: usize,
+) -> (f32, ClothParams) {
+    let (ev, c, stop) = (st.ev, st.render.px_per_cell, &*st.control.stop);
+    let mut cand = cloth.clone();
+    cand.pattern = p;
+    let mut best_radii: Option<(f32, ClothParams)> = None;
+    for mut v in scan_shape(pre_ev, &cand, cp, stop) {
+        let cache = estimate_colours(ev, &mut v, c);
+        let l = refine::lm_appearance(ev, &cache, &mut v, iters, stop);
+        if best_radii.as_ref().is_none_or(|b| l < b.0) {
+            best_radii = Some((l, v));
+        }
+    }
+    if let Some((_, v)) = best_radii {
+        cand = v;
+    }
+    let l = refine::polish(ev, &mut cand, WARMUP_ROUNDS, iters, stop);
+    (l, cand)
+}
+
+/// The starts among the warmed-up candidates `warm` (sorted, lowest loss first): the leader, and
+/// up to `most − 1` runners-up within `margin` of its loss. A runner-up that close is too close
+/// to call at this stage (a pattern and its inverse with swapped colours often are): it gets a
+/// joint run of its own.
+fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec<ClothParams> {
+    let lead = warm.first().map(|w| w.0).unwrap_or(0.0);
+    warm.into_iter()
+        .enumerate()
+        .filter(|(k, w)| *k == 0 || (*k < most && w.0 <= lead * (1.0 + margin)))
+        .map(|(_, w)| w.1)
+        .collect()
+}
+
+/// Yarn shape of a candidate pattern by its pattern loss (own colour estimate): a common radius
+/// on a 0.5-unit grid over Table 1's range (the radii set the gaps, which the back light makes the
+/// brightest, most costly part of the picture, and descent moves them too slowly from a default);
+/// then two ply counts: the best `n_p` at that radius, and the best `n_p` with the radius moved
+/// by ±0.5 (few plies make a lobed silhouette that needs another radius); then from each, the
+/// families' radii moved by up to ±1 in turn (weft and warp can differ by half the range).
+/// Returns the four variants, duplicates removed: the scans' loss, at the default appearance,
+/// does not rank them reliably; the caller's descent does.
+fn scan_shape(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<ClothParams> {
+    let (lo, hi) = RADIUS_RANGE;
+    let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
+    let loss = |e: &Evaluator, cl: &mut ClothParams| pattern_loss(e, cl, c);
+    let mut cl = cloth.clone();
+    if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
+        (cl.r_e, cl.r_a) = (r, r);
+    }
+    let (at_common, joint) = scan_plies(ev, &cl, &loss, stop);
+    let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
+    let per_family = |base: &ClothParams| {
+        let mut cl = base.clone();
+        if let Some((_, r)) = best_variant(ev, &cl, near(cl.r_e), |cl, r| cl.r_e = r, loss, stop) {
+            cl.r_e = r;
+        }
+        if let Some((_, r)) = best_variant(ev, &cl, near(cl.r_a), |cl, r| cl.r_a = r, loss, stop) {
+            cl.r_a = r;
+        }
+        cl
+    };
+    let mut out: Vec<ClothParams> = Vec::new();
+    for v in [per_family(&at_common), at_common, per_family(&joint), joint] {
+        if !out.iter().any(|u| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
+            out.push(v);
+        }
+    }
+    out
+}
+
+/// One pass over `(n_p, radius)`, the common radius of `cl` and ±0.5, serves both the best `n_p`
+/// at that radius and the best pair. Returns the two variants of `cl`.
+fn scan_plies(
+    ev: &Evaluator,
+    cl: &ClothParams,
+    loss: &impl Fn(&Evaluator, &mut ClothParams) -> f32,
+    stop: &AtomicBool,
+) -> (ClothParams, ClothParams) {
+    let (lo, hi) = RADIUS_RANGE;
+    let r0 = cl.r_e;
+    let (mut at_common, mut joint) = (cl.clone(), cl.clone());
+    let (mut best_common, mut best_joint): (Option<f32>, Option<f32>) = (None, None);
+    for n in NP_RANGE.0..=NP_RANGE.1 {
+        for r in [r0 - 0.5, r0, r0 + 0.5].into_iter().filter(|r| (lo..=hi).contains(r)) {
+            if stop.load(Ordering::Relaxed) {
+                break;
+            }
+            let mut cand = cl.clone();
+            (cand.n_p, cand.r_e, cand.r_a) = (n, r, r);
+            let l = loss(ev, &mut cand);
+            if r == r0 && best_common.is_none_or(|b| l < b) {
+                (best_common, at_common.n_p) = (Some(l), n);
+            }
+            if best_joint.is_none_or(|b| l < b) {
+                (best_joint, joint.n_p, joint.r_e, joint.r_a) = (Some(l), n, r, r);
+            }
+        }
+    }
+    (at_common, joint)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with_loss(l: f32, n_p: u32) -> (f32, ClothParams) {
+        let mut c = default_cloth(super::super::candidates::default_twill(4, 4));
+        c.n_p = n_p;
+        (l, c)
+    }
+
+    #[test]
+    fn starts_are_the_leader_and_close_runners_up() {
+        let warm = vec![with_loss(1.0, 1), with_loss(1.1, 2), with_loss(1.2, 3), with_loss(2.0, 4)];
+        let starts = choose_starts(warm.clone(), 3, 0.15);
+        assert_eq!(starts.iter().map(|c| c.n_p).collect::<Vec<_>>(), vec![1, 2]);
+        // At most `most` runs, and the leader even with `most = 0`.
+        assert_eq!(choose_starts(warm.clone(), 2, 5.0).len(), 2);
+        assert_eq!(choose_starts(warm, 0, 5.0).len(), 1);
+        assert!(choose_starts(Vec::new(), 2, 0.15).is_empty());
+    }
+
+    #[test]
+    fn default_cloth_is_grey_with_table_defaults() {
+        let c = default_cloth(WeavePattern::preset("plain").unwrap());
+        assert_eq!((c.n_p, c.n_f, c.r_e, c.r_a), (3, 30, 4.0, 4.0));
+        assert_eq!(c.appearance.r_b_e, [0.5; 3]);
+        assert_eq!(c.appearance.r_s, [0.5; 3]);
+        assert!(c.body_texture.is_none());
+    }
+}
