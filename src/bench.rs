@@ -130,7 +130,7 @@ pub fn run(quick: bool, progress: &dyn Progress) -> Result<String> {
 /// everything else at the preset, for the front-lit and back-lit rigs (re-shaded from one set of
 /// recorded paths per rig).
 pub fn visibility_table(cloth: &ClothParams) -> Result<String> {
-    use crate::params::APPEARANCE_RANGES;
+    use crate::params::{ParamKind, N_APPEARANCE, PARAMS};
     let mut md = String::from("\n### Does every parameter change the image? (decision 4)\n\nRMSE between renders with the parameter at its minimum and at its maximum (96×96, 16 spp, twill 2/2 preset otherwise; mean pixel value ≈ 0.1–0.3). `≈0` marks parameters the image cannot determine.\n\n| parameter | range | front rig | back rig |\n|---|---|---|---|\n");
     let rigs = [LightRig::named("front").expect("rig"), LightRig::named("back").expect("rig")];
     let caches: Vec<_> = rigs
@@ -141,8 +141,8 @@ pub fn visibility_table(cloth: &ClothParams) -> Result<String> {
         })
         .collect();
     let base = cloth.appearance.to_vec();
-    for (i, r) in APPEARANCE_RANGES.iter().enumerate() {
-        if r.name.ends_with("[1]") || r.name.ends_with("[2]") {
+    for (i, r) in PARAMS[..N_APPEARANCE].iter().enumerate() {
+        if matches!(r.kind, ParamKind::Rgb(1) | ParamKind::Rgb(2)) {
             continue; // colour channels behave alike: report channel 0
         }
         let mut cells = Vec::new();

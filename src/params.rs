@@ -603,16 +603,24 @@ impl ParamFile {
         Ok(p)
     }
 
-    /// Read, parse and validate a parameter file.
+    /// Read, parse and validate a parameter file. Refuses what is not a regular file (a FIFO
+    /// would block), files over [`crate::io::MAX_PARAM_FILE_BYTES`] and text that is not UTF-8.
     pub fn load(path: &Path) -> Result<Self, ParamError> {
-        let text = std::fs::read_to_string(path)
+        let text = crate::io::read_text_capped(path, crate::io::MAX_PARAM_FILE_BYTES)
             .map_err(|source| ParamError::Io { path: path.display().to_string(), source })?;
         Self::from_json(&text)
     }
 
-    /// Validate cloth and scene.
+    /// Validate cloth and scene, and that the pattern is a weave
+    /// ([`WeavePattern::check_woven`]: no yarn floating over the whole fabric). Only for a
+    /// finished parameter file: [`ClothParams::validate`] leaves the pattern alone, since the fit
+    /// scores such patterns internally.
     pub fn validate(&self) -> Result<(), ParamError> {
         self.cloth.validate()?;
+        self.cloth
+            .pattern
+            .check_woven()
+            .map_err(|e| ParamError::Invalid { field: "pattern".into(), msg: e.to_string() })?;
         self.scene.validate()
     }
 
@@ -737,5 +745,28 @@ mod tests {
         assert!(ParamFile::from_json(&bad).is_err());
         let bad = text.replace("\"g_p\"", "\"g_q\"");
         assert!(ParamFile::from_json(&bad).unwrap_err().to_string().contains("g_q"));
+        // A pattern with a floating yarn is refused by the file, not by the cloth's ranges.
+        let mut floating = p.clone();
+        floating.cloth.pattern = WeavePattern::parse("11/10").unwrap();
+        assert!(floating.cloth.validate().is_ok());
+        let e = ParamFile::from_json(&floating.to_json()).unwrap_err().to_string();
+        assert!(e.contains("pattern") && e.contains("not woven"), "{e}");
+    }
+
+    #[test]
+    fn loading_reads_a_saved_file_and_refuses_oversized_or_missing_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = ParamFile { cloth: ClothParams::preset("plain").unwrap(), scene: Scene::default() };
+        let path = dir.path().join("p.json");
+        p.save(&path).unwrap();
+        assert_eq!(ParamFile::load(&path).unwrap(), p);
+        // Valid JSON padded past the cap with trailing spaces.
+        let mut big = p.to_json().into_bytes();
+        big.resize(crate::io::MAX_PARAM_FILE_BYTES as usize + 1, b' ');
+        let huge = dir.path().join("huge.json");
+        std::fs::write(&huge, big).unwrap();
+        assert!(matches!(ParamFile::load(&huge), Err(ParamError::Io { .. })));
+        let e = ParamFile::load(&dir.path().join("none.json")).unwrap_err().to_string();
+        assert!(e.contains("none.json"), "{e}");
     }
 }

@@ -3,8 +3,8 @@
 //! model from a dataset folder with its metadata, and loading one.
 
 use crate::image_io::Image;
-use crate::net::{NetSpec, OutputSpec, PreEstimator, Prediction, Sample, TrainConfig};
-use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, RADIUS_RANGE};
+use crate::net::{cloth_targets, NetSpec, OutputSpec, PreEstimator, Sample, TrainConfig};
+use crate::params::ClothParams;
 use crate::progress::Progress;
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
@@ -13,45 +13,12 @@ use std::path::{Path, PathBuf};
 /// Default location of the shipped model.
 pub const DEFAULT_MODEL: &str = "models/pre_estimator.safetensors";
 
-/// The network's regression outputs: the 30 appearance scalars, then `n_p`, `n_f`, `r_e`, `r_a`.
+/// The network's regression outputs: [`crate::net::cloth_outputs`], one per parameter of the table
+/// in [`crate::params::PARAMS`] order, each with its Table-1 range. Training targets come from
+/// [`crate::net::cloth_targets`] and a prediction is applied with
+/// [`crate::net::Prediction::apply_to`].
 pub fn output_specs() -> Vec<OutputSpec> {
-    let mut v: Vec<OutputSpec> =
-        APPEARANCE_RANGES.iter().map(|r| OutputSpec::continuous(r.name, r.min as f64, r.max as f64)).collect();
-    v.push(OutputSpec::integer("n_p", NP_RANGE.0 as i64, NP_RANGE.1 as i64));
-    v.push(OutputSpec::integer("n_f", NF_RANGE.0 as i64, NF_RANGE.1 as i64));
-    v.push(OutputSpec::continuous("r_e", RADIUS_RANGE.0 as f64, RADIUS_RANGE.1 as f64));
-    v.push(OutputSpec::continuous("r_a", RADIUS_RANGE.0 as f64, RADIUS_RANGE.1 as f64));
-    v
-}
-
-/// Normalised targets of a cloth in [`output_specs`] order.
-pub fn targets(cloth: &ClothParams) -> Vec<f32> {
-    let mut raw: Vec<f64> = cloth.appearance.to_vec().iter().map(|&x| x as f64).collect();
-    raw.extend([cloth.n_p as f64, cloth.n_f as f64, cloth.r_e as f64, cloth.r_a as f64]);
-    output_specs().iter().zip(raw).map(|(s, x)| s.normalise(x)).collect()
-}
-
-/// Apply a prediction's outputs to a cloth (pattern untouched).
-pub fn apply_prediction(p: &Prediction, cloth: &mut ClothParams) {
-    let mut v = cloth.appearance.to_vec();
-    for (i, r) in APPEARANCE_RANGES.iter().enumerate() {
-        if let Some(o) = p.get(r.name) {
-            v[i] = (o as f32).clamp(r.min, r.max);
-        }
-    }
-    cloth.appearance = Appearance::from_slice(&v);
-    if let Some(o) = p.get("n_p") {
-        cloth.n_p = (o.round() as u32).clamp(NP_RANGE.0, NP_RANGE.1);
-    }
-    if let Some(o) = p.get("n_f") {
-        cloth.n_f = (o.round() as u32).clamp(NF_RANGE.0, NF_RANGE.1);
-    }
-    if let Some(o) = p.get("r_e") {
-        cloth.r_e = (o as f32).clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
-    }
-    if let Some(o) = p.get("r_a") {
-        cloth.r_a = (o as f32).clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
-    }
+    crate::net::cloth_outputs()
 }
 
 #[derive(Deserialize)]
@@ -97,7 +64,12 @@ pub fn load_dataset(dir: &Path, progress: &dyn Progress) -> Result<(Vec<String>,
             let path = dir.join("images").join(format!("{:06}.png", l.index));
             let img = Image::load(&path, 8)?;
             progress.advance(1);
-            Ok(Sample { image: img.to_rgb32f(), class: l.class_id, targets: targets(&l.cloth), seed: l.sample_seed })
+            Ok(Sample {
+                image: img.to_rgb32f(),
+                class: l.class_id,
+                targets: cloth_targets(&l.cloth),
+                seed: l.sample_seed,
+            })
         })
         .collect();
     progress.finish();

@@ -4,7 +4,7 @@
 
 use crate::geometry::ply::PlyModel;
 use crate::geometry::yarn::{Family, YarnSet};
-use crate::params::{Appearance, APPEARANCE_RANGES, N_APPEARANCE};
+use crate::params::{param, Appearance, N_APPEARANCE, PARAMS};
 use crate::pattern::WeavePattern;
 use crate::progress::Progress;
 use crate::shading::albedo::albedo;
@@ -41,7 +41,7 @@ pub struct StressReport {
 
 fn random_appearance(rng: &mut SmallRng) -> Appearance {
     let mut v: [f32; N_APPEARANCE] = std::array::from_fn(|i| {
-        let r = APPEARANCE_RANGES[i];
+        let r = PARAMS[i];
         // A fifth of the values sit exactly on a bound.
         match rng.random_range(0..10) {
             0 => r.min,
@@ -49,9 +49,10 @@ fn random_appearance(rng: &mut SmallRng) -> Appearance {
             _ => rng.random_range(r.min..=r.max),
         }
     });
+    // Half of the draws put both GGX roughnesses at a limit together (0: a delta lobe, 1: the roughest).
     match rng.random_range(0..4) {
-        0 => (v[10], v[11]) = (0.0, 0.0),
-        1 => (v[10], v[11]) = (1.0, 1.0),
+        0 => (v[param::ALPHA_S], v[param::ALPHA_S_Y]) = (0.0, 0.0),
+        1 => (v[param::ALPHA_S], v[param::ALPHA_S_Y]) = (1.0, 1.0),
         _ => {}
     }
     Appearance::from_slice(&v)

@@ -1,14 +1,14 @@
 //! The optimizer's building blocks: annealing schedule, Metropolis rule, energy calibration,
 //! barrier, Adam.
 
-use crate::params::{ParamRange, APPEARANCE_RANGES, N_APPEARANCE, RADIUS_RANGE};
+use crate::params::{param, ParamInfo, ParamRange, N_APPEARANCE, PARAMS};
 use rand::{Rng, RngExt};
 
 /// Initial annealing temperature (paper §6.2).
 pub const T0: f64 = 100.0;
 /// Multiplicative temperature decay per iteration (paper §6.2).
 pub const DECAY: f64 = 0.98;
-/// Barrier weight λ (paper eq. 5, pipeline §5).
+/// Barrier weight λ (paper eq. 5, docs/design.md §5).
 pub const BARRIER_LAMBDA: f32 = 0.01;
 
 /// Temperature at iteration `k`: `t0 · decay^k`.
@@ -43,7 +43,7 @@ pub const FALLBACK_ENERGY_SCALE: f64 = 1e5;
 
 /// Energy per unit MSE from the MSE increases of a few uphill proposals drawn at the start of a
 /// run: the median increase costs `t0·ln 2`, so half of the early uphill proposals are accepted
-/// (pipeline §5). [`FALLBACK_ENERGY_SCALE`] without a positive median.
+/// (docs/design.md §5). [`FALLBACK_ENERGY_SCALE`] without a positive median.
 pub fn energy_scale_from_uphill(mut ups: Vec<f64>, t0: f64) -> f64 {
     ups.sort_by(f64::total_cmp);
     match ups.get(ups.len() / 2) {
@@ -68,17 +68,14 @@ pub fn barrier_grad(x: f32, a: f32, b: f32, lambda: f32) -> f32 {
 
 /// Ranges of the optimizer's continuous vector: 30 appearance scalars, then `r_e`, `r_a`.
 pub fn continuous_ranges() -> Vec<ParamRange> {
-    let mut v: Vec<ParamRange> = APPEARANCE_RANGES.to_vec();
-    v.push(ParamRange { name: "r_e", min: RADIUS_RANGE.0, max: RADIUS_RANGE.1 });
-    v.push(ParamRange { name: "r_a", min: RADIUS_RANGE.0, max: RADIUS_RANGE.1 });
-    v
+    PARAMS[..param::R_A + 1].iter().map(ParamInfo::range).collect()
 }
 
 /// Total barrier of the appearance vector and its gradient.
 pub fn appearance_barrier(x: &[f32; N_APPEARANCE]) -> (f32, [f32; N_APPEARANCE]) {
     let mut g = [0.0; N_APPEARANCE];
     let mut l = 0.0;
-    for (k, r) in APPEARANCE_RANGES.iter().enumerate() {
+    for (k, r) in PARAMS[..N_APPEARANCE].iter().enumerate() {
         l += barrier(x[k], r.min, r.max, BARRIER_LAMBDA);
         g[k] = barrier_grad(x[k], r.min, r.max, BARRIER_LAMBDA);
     }

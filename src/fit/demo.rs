@@ -4,7 +4,7 @@
 
 use super::target::fit_scene;
 use crate::image_io::Image;
-use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, N_APPEARANCE, RADIUS_RANGE};
+use crate::params::{param, Appearance, ClothParams, NF_RANGE, NP_RANGE, N_APPEARANCE, PARAMS};
 use crate::pattern::{WeavePattern, PRESETS};
 use crate::render::{render, RenderOptions};
 use crate::scene::LightRig;
@@ -42,6 +42,9 @@ pub fn synthetic_target(cloth: &ClothParams, c: u32, spp: u32, seed: u64, thread
     render(cloth, &scene, &RenderOptions { threads, ..Default::default() })
 }
 
+/// Smallest yarn radius that [`random_cloth`] draws (Table 1 allows 1; the upper end is Table 1's).
+const MIN_RANDOM_RADIUS: f32 = 2.5;
+
 /// Random valid cloth: 50 % presets (side ≤ `max_side`), 50 % random patterns without floating
 /// yarns (no preset); appearance uniform in Table 1 (0.05–0.95 for the unit ranges), radii
 /// 2.5–5.
@@ -65,7 +68,7 @@ pub fn random_cloth(rng: &mut StdRng, max_side: usize) -> ClothParams {
         }
     };
     let mut v = [0.0f32; N_APPEARANCE];
-    for (k, r) in APPEARANCE_RANGES.iter().enumerate() {
+    for (k, r) in PARAMS[..N_APPEARANCE].iter().enumerate() {
         let u: f32 = rng.random();
         let (lo, hi) = if r.min == 0.0 && r.max == 1.0 { (0.05, 0.95) } else { (r.min, r.max) };
         v[k] = lo + u * (hi - lo);
@@ -74,35 +77,23 @@ pub fn random_cloth(rng: &mut StdRng, max_side: usize) -> ClothParams {
         pattern,
         n_p: rng.random_range(NP_RANGE.0..=NP_RANGE.1),
         n_f: rng.random_range(NF_RANGE.0..=NF_RANGE.1),
-        r_e: rng.random_range(2.5f32..=5.0),
-        r_a: rng.random_range(2.5f32..=5.0),
+        r_e: rng.random_range(MIN_RANDOM_RADIUS..=PARAMS[param::R_E].max),
+        r_a: rng.random_range(MIN_RANDOM_RADIUS..=PARAMS[param::R_A].max),
         appearance: Appearance::from_slice(&v),
         body_texture: None,
     }
 }
 
-/// Scalars compared between a fit and the truth: the 30 appearance scalars, `r_e`, `r_a`, `n_p`,
-/// `n_f`, each as a fraction of its range (names in [`param_names`]).
+/// Scalars compared between a fit and the truth, in [`PARAMS`] order (the 30 appearance scalars,
+/// `r_e`, `r_a`, `n_p`, `n_f`), each as a fraction of its range ([`ClothParams::range_errors`];
+/// names in [`param_names`]).
 pub fn param_errors(fit: &ClothParams, truth: &ClothParams) -> Vec<(String, f32)> {
-    let (a, b) = (fit.appearance.to_vec(), truth.appearance.to_vec());
-    let mut v: Vec<(String, f32)> = APPEARANCE_RANGES
-        .iter()
-        .enumerate()
-        .map(|(k, r)| (r.name.to_string(), (a[k] - b[k]).abs() / (r.max - r.min)))
-        .collect();
-    let rs = RADIUS_RANGE.1 - RADIUS_RANGE.0;
-    v.push(("r_e".into(), (fit.r_e - truth.r_e).abs() / rs));
-    v.push(("r_a".into(), (fit.r_a - truth.r_a).abs() / rs));
-    v.push(("n_p".into(), (fit.n_p as f32 - truth.n_p as f32).abs() / (NP_RANGE.1 - NP_RANGE.0) as f32));
-    v.push(("n_f".into(), (fit.n_f as f32 - truth.n_f as f32).abs() / (NF_RANGE.1 - NF_RANGE.0) as f32));
-    v
+    PARAMS.iter().zip(fit.range_errors(truth)).map(|(p, e)| (p.name.to_string(), e)).collect()
 }
 
 /// Names of [`param_errors`] entries, in order.
 pub fn param_names() -> Vec<String> {
-    let mut v: Vec<String> = APPEARANCE_RANGES.iter().map(|r| r.name.to_string()).collect();
-    v.extend(["r_e", "r_a", "n_p", "n_f"].map(String::from));
-    v
+    PARAMS.iter().map(|p| p.name.to_string()).collect()
 }
 
 #[cfg(test)]
@@ -116,9 +107,9 @@ mod tests {
         for _ in 0..40 {
             let c = random_cloth(&mut rng, 4);
             assert!(c.pattern.n_e() <= 4 && c.pattern.n_a() <= 4 && !c.pattern.has_unbound_yarn(), "{}", c.pattern);
-            assert!((2.5..=5.0).contains(&c.r_e) && (NP_RANGE.0..=NP_RANGE.1).contains(&c.n_p));
+            assert!((MIN_RANDOM_RADIUS..=5.0).contains(&c.r_e) && (NP_RANGE.0..=NP_RANGE.1).contains(&c.n_p));
             let x = c.appearance.to_vec();
-            assert!(x.iter().zip(APPEARANCE_RANGES).all(|(v, r)| *v >= r.min && *v <= r.max));
+            assert!(x.iter().zip(&PARAMS).all(|(v, r)| r.contains(*v)));
         }
     }
 
@@ -127,7 +118,7 @@ mod tests {
         let truth = demo_cloth();
         assert!(param_errors(&truth, &truth).iter().all(|(_, e)| *e == 0.0));
         let mut fit = truth.clone();
-        fit.r_e = truth.r_e + 0.1 * (RADIUS_RANGE.1 - RADIUS_RANGE.0);
+        fit.r_e = truth.r_e + 0.1 * PARAMS[param::R_E].span();
         fit.n_p = truth.n_p + 1;
         let e = param_errors(&fit, &truth);
         let names = param_names();

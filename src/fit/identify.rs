@@ -11,7 +11,7 @@
 //! under an ambient + front + back rig). `woven eval` calls a parameter identifiable on a target
 //! when `sd_k ≤` [`IDENTIFIABLE_SD`] and reports the error over those.
 
-use crate::params::{ClothParams, N_APPEARANCE};
+use crate::params::{ClothParams, N_APPEARANCE, PARAMS};
 use crate::render::{Prepared, RenderOptions};
 use crate::scene::Scene;
 
@@ -33,9 +33,7 @@ pub fn appearance_sd(
     let cache = Prepared::new(cloth, scene, &opts).record(&cloth.appearance);
     let px = cache.shade_with_derivatives(&cloth.appearance);
     let (w, h) = cache.size();
-    let spans: [f64; N_APPEARANCE] = std::array::from_fn(|k| {
-        (crate::params::APPEARANCE_RANGES[k].max - crate::params::APPEARANCE_RANGES[k].min) as f64
-    });
+    let spans: [f64; N_APPEARANCE] = std::array::from_fn(|k| PARAMS[k].span() as f64);
     // Rows of J: one per filtered value; clipped values (outside (0, 1)) carry no information.
     let mut fisher = vec![0.0f64; N_APPEARANCE * N_APPEARANCE];
     for block in super::evaluator::block_jacobian(&px, w, h, b) {
@@ -58,7 +56,7 @@ pub fn appearance_sd(
 /// eigenvalue below `1e-9` of the largest count as undetermined (infinite variance).
 fn crlb_sd(fisher: &[f64]) -> [f32; N_APPEARANCE] {
     let n = N_APPEARANCE;
-    let (vals, vecs) = crate::prep::linalg::sym_eigen(fisher, n);
+    let (vals, vecs) = crate::math::linalg::sym_eigen(fisher, n);
     let top = vals.first().copied().unwrap_or(0.0).max(0.0);
     let mut var = [0.0f64; N_APPEARANCE];
     for (lam, v) in vals.iter().zip(&vecs) {
@@ -113,8 +111,8 @@ mod tests {
         let cloth = ClothParams::preset("plain").expect("preset");
         let scene = super::super::target::fit_scene(2, 2, 16, 4, 1, &crate::scene::LightRig::default_rig());
         let sd = appearance_sd(&cloth, &scene, 2, 1e-4, Some(1));
-        let idx = |name: &str| crate::params::APPEARANCE_RANGES.iter().position(|r| r.name == name).expect(name);
-        assert!(sd[idx("a_s")] > 0.5, "A^S sd {}", sd[idx("a_s")]);
+        let a_s = crate::params::param::A_S;
+        assert!(sd[a_s] > 0.5, "A^S sd {}", sd[a_s]);
         assert!(sd.iter().all(|s| s.is_finite() && *s > 0.0));
         let best = sd.iter().copied().fold(1.0f32, f32::min);
         assert!(best < 0.05, "no parameter is determined: {sd:?}");

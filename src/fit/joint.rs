@@ -1,4 +1,4 @@
-//! Joint optimization (pipeline.md §5): per iteration one Metropolis-tested discrete proposal
+//! Joint optimization (docs/design.md §5): per iteration one Metropolis-tested discrete proposal
 //! ([`Proposal`]: cells, `n_p`, `n_f`, the inverted twin) and one Adam step of the continuous
 //! parameters (`refine::ContinuousStep`), with the temperature `T_k = T0·decay^k` and the energy
 //! `E = K·MSE`. `K` is calibrated per run from a few proposals drawn at its start so that the
@@ -52,7 +52,7 @@ pub struct IterLog {
     pub r_e: f32,
     /// Current radii.
     pub r_a: f32,
-    /// Current appearance vector (order of `APPEARANCE_RANGES`).
+    /// Current appearance vector (the order of the first `N_APPEARANCE` entries of `params::PARAMS`).
     pub appearance: Vec<f32>,
     /// Current pattern.
     pub pattern: String,

@@ -1,4 +1,4 @@
-//! `woven fit`: recover pattern, geometry and appearance from one image (pipeline.md §4–5).
+//! `woven fit`: recover pattern, geometry and appearance from one image (docs/design.md §4–§5).
 //!
 //! [`fit`] runs the stages in order, each in its own module:
 //! 1. [`input`]: optional preparation (`prep`), the yarn grid, the one-repeat target at the fit's
@@ -30,7 +30,7 @@
 //! the barrier (λ = 0.01 per scalar, raw units). The annealing energy is `E = K·MSE`; `K` is
 //! calibrated per fit from a few proposals drawn at the start of the joint loop so that the median
 //! uphill proposal costs `T0·ln 2`, i.e. half of the early uphill proposals are accepted
-//! (pipeline §5); `--energy-scale` fixes it.
+//! (docs/design.md §5); `--energy-scale` fixes it.
 
 pub mod anneal;
 mod candidates;

@@ -7,7 +7,7 @@ use super::joint::IterLog;
 use crate::pattern::WeavePattern;
 use crate::progress::{NoProgress, Progress};
 use crate::scene::LightRig;
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -237,10 +237,15 @@ impl FitOptions {
         o
     }
 
-    /// Whether the options can run: cells of at least 2 px, at least 1 sample per pixel.
+    /// Whether the options can run: cells of at least 2 px, at least 1 sample per pixel, and a
+    /// fixed pattern that is a weave (the fitted parameter file must be one, see
+    /// [`crate::params::ParamFile::validate`]; refused here rather than after the fit).
     pub fn validate(&self) -> Result<()> {
         if self.render.px_per_cell < 2 || self.pre.px_per_cell == 1 || self.render.spp == 0 || self.pre.spp == 0 {
             bail!("px_per_cell must be ≥ 2 and spp ≥ 1");
+        }
+        if let Some(p) = &self.input.pattern {
+            p.check_woven().context("the fixed pattern")?;
         }
         Ok(())
     }
@@ -278,6 +283,12 @@ mod tests {
         let mut o = FitOptions::default();
         o.pre.px_per_cell = 1;
         assert!(o.validate().unwrap_err().to_string().contains("px_per_cell"));
+        // A fixed pattern with a yarn floating over the whole repeat cannot give a weave.
+        let mut o = FitOptions::default();
+        o.input.pattern = Some(WeavePattern::parse("110/011/000").unwrap());
+        assert!(format!("{:#}", o.validate().unwrap_err()).contains("not woven"));
+        o.input.pattern = Some(WeavePattern::preset("twill22").unwrap());
+        o.validate().unwrap();
     }
 
     #[test]

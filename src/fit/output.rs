@@ -6,7 +6,7 @@ use super::evaluator::Evaluator;
 use super::options::RenderSettings;
 use super::FitResult;
 use crate::image_io::Image;
-use crate::params::{Appearance, ClothParams, ParamFile, APPEARANCE_RANGES, RADIUS_RANGE};
+use crate::params::{param, ClothParams, ParamFile, PARAMS};
 use crate::plot::{register_font, write_rgb_png as write_png};
 use crate::render::{render, Prepared, RenderOptions};
 use crate::scene::Scene;
@@ -36,7 +36,8 @@ pub(crate) fn final_state(
     size: (u32, u32),
     prep: Option<&crate::prep::Prepared>,
 ) -> Result<FinalState> {
-    let cloth = clamp_ranges(best);
+    // The barrier lets the optimizer step a little past the Table-1 ranges.
+    let cloth = best.clamped();
     let final_scene =
         Scene { spp: settings.final_spp.max(1), seed: settings.seed.wrapping_add(7), ..ev.scene().clone() };
     let render = Prepared::new(&cloth, &final_scene, &RenderOptions::default()).render(&cloth.appearance);
@@ -49,17 +50,6 @@ pub(crate) fn final_state(
     let params = ParamFile { cloth: out_cloth, scene };
     params.validate().context("fitted parameter file does not validate")?;
     Ok(FinalState { cloth, params, render, psnr_db })
-}
-
-/// The cloth with its appearance and radii clamped to their Table-1 ranges (the barrier lets
-/// the optimizer step a little past them).
-fn clamp_ranges(cloth: &ClothParams) -> ClothParams {
-    let mut c = cloth.clone();
-    let v: Vec<f32> = c.appearance.to_vec().iter().zip(APPEARANCE_RANGES).map(|(x, r)| x.clamp(r.min, r.max)).collect();
-    c.appearance = Appearance::from_slice(&v);
-    c.r_e = c.r_e.clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
-    c.r_a = c.r_a.clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
-    c
 }
 
 /// Scene rendering the input's framing for a cloth with `reduced` pattern when the fit grid is
@@ -238,14 +228,15 @@ fn draw_parameters<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::S
         .map_err(plot_err)?;
     chart.configure_mesh().x_desc("iteration").label_style(("sans-serif", 12)).draw().map_err(plot_err)?;
     type Getter = Box<dyn Fn(&super::joint::IterLog) -> f64>;
+    use param::{M_R, N_F, N_P, R_A, R_B_A, R_B_E, R_E};
     let series: Vec<(&str, RGBColor, Getter)> = vec![
-        ("r_e", RGBColor(200, 0, 0), Box::new(|l| (l.r_e as f64 - 1.0) / 4.0)),
-        ("r_a", RGBColor(0, 120, 0), Box::new(|l| (l.r_a as f64 - 1.0) / 4.0)),
-        ("n_p", RGBColor(120, 0, 160), Box::new(|l| (l.n_p as f64 - 1.0) / 6.0)),
-        ("n_f", RGBColor(160, 100, 0), Box::new(|l| (l.n_f as f64 - 20.0) / 30.0)),
-        ("m_r", RGBColor(0, 0, 200), Box::new(|l| (l.appearance[0] as f64 - 0.2) / 0.6)),
-        ("r_b_e[0]", RGBColor(255, 80, 80), Box::new(|l| l.appearance[16] as f64)),
-        ("r_b_a[0]", RGBColor(80, 160, 255), Box::new(|l| l.appearance[19] as f64)),
+        (PARAMS[R_E].name, RGBColor(200, 0, 0), Box::new(|l| fraction(R_E, l.r_e as f64))),
+        (PARAMS[R_A].name, RGBColor(0, 120, 0), Box::new(|l| fraction(R_A, l.r_a as f64))),
+        (PARAMS[N_P].name, RGBColor(120, 0, 160), Box::new(|l| fraction(N_P, l.n_p as f64))),
+        (PARAMS[N_F].name, RGBColor(160, 100, 0), Box::new(|l| fraction(N_F, l.n_f as f64))),
+        (PARAMS[M_R].name, RGBColor(0, 0, 200), Box::new(|l| fraction(M_R, l.appearance[M_R] as f64))),
+        (PARAMS[R_B_E].name, RGBColor(255, 80, 80), Box::new(|l| fraction(R_B_E, l.appearance[R_B_E] as f64))),
+        (PARAMS[R_B_A].name, RGBColor(80, 160, 255), Box::new(|l| fraction(R_B_A, l.appearance[R_B_A] as f64))),
         ("T/T0", RGBColor(120, 120, 120), Box::new(|l| (l.temperature / super::anneal::T0).min(1.0))),
     ];
     for (name, col, get) in series {
@@ -264,6 +255,11 @@ fn draw_parameters<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::S
         .draw()
         .map_err(plot_err)?;
     Ok(())
+}
+
+/// Position of `x` in the Table-1 range of parameter `k`, `(x − min)/span`, in f64 as plotted.
+fn fraction(k: usize, x: f64) -> f64 {
+    (x - PARAMS[k].min as f64) / PARAMS[k].span() as f64
 }
 
 /// Every output of a fit in `dir`: with preparation, noise post-estimation (paper §6.3) — the
@@ -331,12 +327,16 @@ mod tests {
         let mut c = crate::fit::demo::demo_cloth();
         c.appearance.m_r = -1.0;
         c.appearance.r_b_e = [1.2, 0.5, -0.1];
-        (c.r_e, c.r_a) = (RADIUS_RANGE.1 + 1.0, 4.0);
-        let k = clamp_ranges(&c);
-        assert_eq!(k.appearance.m_r, APPEARANCE_RANGES[0].min);
+        (c.r_e, c.r_a) = (PARAMS[param::R_E].max + 1.0, 4.0);
+        let ev = Evaluator::new(fit_scene(4, 4, 4, 1, 1, &LightRig::default_rig()), Image::filled(16, 16, [0.3; 3]), 2);
+        let settings = RenderSettings { px_per_cell: 4, spp: 1, final_spp: 1, ..RenderSettings::default() };
+        let out = final_state(&c, &ev, &settings, (4, 4), (16, 16), None).unwrap();
+        let k = &out.cloth;
+        assert_eq!(k.appearance.m_r, PARAMS[param::M_R].min);
         assert_eq!(k.appearance.r_b_e, [1.0, 0.5, 0.0]);
-        assert_eq!((k.r_e, k.r_a), (RADIUS_RANGE.1, 4.0));
+        assert_eq!((k.r_e, k.r_a), (PARAMS[param::R_E].max, 4.0));
         k.validate().unwrap();
+        out.params.validate().unwrap();
     }
 
     #[test]

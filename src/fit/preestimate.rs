@@ -13,7 +13,7 @@ use super::options::PreOptions;
 use super::target::{fit_scene, resample, tile};
 use super::{refine, Stage};
 use crate::image_io::Image;
-use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, RADIUS_RANGE};
+use crate::params::{Appearance, ClothParams, NP_RANGE, RADIUS_RANGE};
 use crate::pattern::WeavePattern;
 use anyhow::{Context, Result};
 use std::path::Path;
@@ -114,32 +114,11 @@ fn apply_model(cloth: &mut ClothParams, crop: &Image, model: &Path, warnings: &m
     Ok(())
 }
 
-/// Apply a pre-estimator prediction (everything but the pattern and the analytic colours).
+/// Apply a pre-estimator prediction: everything but the pattern and the colours that the colour
+/// pre-estimate computes from the picture (`R^S`, `R^B_e`, `R^B_a`), each clamped into its range.
 fn apply_network(cloth: &mut ClothParams, pred: &crate::net::Prediction) {
-    let mut v = cloth.appearance.to_vec();
-    for (k, r) in APPEARANCE_RANGES.iter().enumerate() {
-        if r.name.starts_with("r_b_") || r.name.starts_with("r_s[") {
-            continue;
-        }
-        if let Some(x) = pred.get(r.name) {
-            if x.is_finite() {
-                v[k] = (x as f32).clamp(r.min, r.max);
-            }
-        }
-    }
-    cloth.appearance = Appearance::from_slice(&v);
-    if let Some(x) = pred.get("n_p").filter(|x| x.is_finite()) {
-        cloth.n_p = (x.round() as u32).clamp(NP_RANGE.0, NP_RANGE.1);
-    }
-    if let Some(x) = pred.get("n_f").filter(|x| x.is_finite()) {
-        cloth.n_f = (x.round() as u32).clamp(NF_RANGE.0, NF_RANGE.1);
-    }
-    if let Some(x) = pred.get("r_e").filter(|x| x.is_finite()) {
-        cloth.r_e = (x as f32).clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
-    }
-    if let Some(x) = pred.get("r_a").filter(|x| x.is_finite()) {
-        cloth.r_a = (x as f32).clamp(RADIUS_RANGE.0, RADIUS_RANGE.1);
-    }
+    use crate::params::param::{R_B_A, R_B_E, R_S};
+    pred.apply_to(cloth, |p| !(R_S..R_S + 3).contains(&p.index) && !(R_B_E..R_B_A + 3).contains(&p.index));
 }
 
 /// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and

@@ -1,4 +1,4 @@
-//! Discrete proposals of the annealer (pipeline §5): a cell toggle, the inverted twin, another ply
+//! Discrete proposals of the annealer (docs/design.md §5): a cell toggle, the inverted twin, another ply
 //! count or another fiber count, drawn with fixed probabilities and applied to a cloth.
 
 use super::candidates::inverted_twin;

@@ -1,4 +1,4 @@
-//! Continuous part of the fit (pipeline.md §5, gradient descent).
+//! Continuous part of the fit (docs/design.md §5, gradient descent).
 //!
 //! In the joint loop, one [`ContinuousStep`] per iteration: Adam on the 30 appearance scalars with
 //! the forward model's exact derivatives, and on the two yarn radii with simultaneous-perturbation
@@ -11,7 +11,8 @@
 
 use super::anneal::{self, Adam, BARRIER_LAMBDA};
 use super::evaluator::{total_loss, Evaluator};
-use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, N_APPEARANCE, RADIUS_RANGE};
+use crate::math::lm::{self, LmOptions, LmProblem};
+use crate::params::{param, Appearance, ClothParams, N_APPEARANCE, PARAMS, RADIUS_RANGE};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Finite-difference step of the radii (scene units; the pitch is 10).
@@ -30,7 +31,7 @@ impl ContinuousStep {
         ContinuousStep {
             adam: Adam::new(N_APPEARANCE),
             adam_r: Adam::new(2),
-            spans: std::array::from_fn(|k| APPEARANCE_RANGES[k].max - APPEARANCE_RANGES[k].min),
+            spans: std::array::from_fn(|k| PARAMS[k].span()),
             radius_steps: 0,
         }
     }
@@ -53,9 +54,9 @@ impl ContinuousStep {
         let gt: Vec<f32> = g.iter().zip(gb.iter()).map(|(a, b)| a + b).collect();
         let lrs: Vec<f32> = self.spans.iter().map(|s| lr * s).collect();
         self.adam.step(&mut x, &gt, &lrs, &[true; N_APPEARANCE]);
-        for (v, r) in x.iter_mut().zip(APPEARANCE_RANGES) {
+        for (v, r) in x.iter_mut().zip(&PARAMS) {
             // A little room past the bounds lets the barrier, not a wall, hold the parameter.
-            let span = r.max - r.min;
+            let span = r.span();
             let lo = if r.min == 0.0 { 0.0 } else { r.min - 0.05 * span };
             *v = v.clamp(lo, r.max + 0.05 * span);
         }
@@ -90,34 +91,6 @@ impl ContinuousStep {
     }
 }
 
-/// Solution of `A x = b` for a symmetric positive definite `A` (row-major `n × n`) by Cholesky;
-/// `None` when `A` is not positive definite.
-fn cholesky_solve(a: &[f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
-    let mut l = vec![0.0f64; n * n];
-    for i in 0..n {
-        for j in 0..=i {
-            let s: f64 = a[i * n + j] - (0..j).map(|k| l[i * n + k] * l[j * n + k]).sum::<f64>();
-            if i == j {
-                if s.is_nan() || s <= 0.0 {
-                    return None;
-                }
-                l[i * n + i] = s.sqrt();
-            } else {
-                l[i * n + j] = s / l[j * n + j];
-            }
-        }
-    }
-    let mut y = vec![0.0f64; n];
-    for i in 0..n {
-        y[i] = (b[i] - (0..i).map(|k| l[i * n + k] * y[k]).sum::<f64>()) / l[i * n + i];
-    }
-    let mut x = vec![0.0f64; n];
-    for i in (0..n).rev() {
-        x[i] = (y[i] - (i + 1..n).map(|k| l[k * n + i] * x[k]).sum::<f64>()) / l[i * n + i];
-    }
-    Some(x)
-}
-
 /// Largest change of one appearance scalar per Levenberg–Marquardt step (fraction of its range).
 const LM_MAX_STEP: f64 = 0.25;
 
@@ -125,8 +98,8 @@ const LM_MAX_STEP: f64 = 0.25;
 /// of `cloth`), in units of each Table-1 range: `(H + μ(diag H + ε)) δ = −g` with the Gauss–Newton
 /// `H = 2JᵀJ/n` of the exact derivatives, steps projected into the ranges (where the barrier is
 /// zero), `μ` divided by 3 after a step that lowers the loss and multiplied by 5 after one that
-/// does not. Each iteration costs one derivative shading, no re-trace. Leaves the best appearance
-/// in `cloth` and returns its loss (MSE + barrier).
+/// does not ([`lm::minimize`] with its default schedule). Each iteration costs one derivative
+/// shading, no re-trace. Leaves the best appearance in `cloth` and returns its loss (MSE + barrier).
 pub(super) fn lm_appearance(
     ev: &Evaluator,
     cache: &crate::render::PathCache,
@@ -134,49 +107,47 @@ pub(super) fn lm_appearance(
     iters: usize,
     stop: &AtomicBool,
 ) -> f32 {
-    const N: usize = N_APPEARANCE;
-    let spans: [f64; N] = std::array::from_fn(|k| (APPEARANCE_RANGES[k].max - APPEARANCE_RANGES[k].min) as f64);
-    let project = |x: &mut [f32; N]| {
-        x.iter_mut().zip(APPEARANCE_RANGES).for_each(|(v, r)| *v = v.clamp(r.min, r.max));
-    };
-    let mut x = cloth.appearance.to_vec();
-    let (m, mut g, mut hess) = ev.loss_grad_hessian(cache, &cloth.appearance);
-    let mut loss = total_loss(m, &x);
-    let mut mu = 1e-2f64;
-    for _ in 0..iters {
-        if stop.load(Ordering::Relaxed) || mu > 1e6 {
-            break;
-        }
-        let eps = 1e-6 * (0..N).map(|i| hess[i * N + i] * spans[i] * spans[i]).fold(0.0, f64::max).max(1e-12);
-        let mut a = vec![0.0f64; N * N];
-        for i in 0..N {
-            for j in 0..N {
-                a[i * N + j] = hess[i * N + j] * spans[i] * spans[j];
-            }
-            a[i * N + i] += mu * (a[i * N + i] + eps);
-        }
-        let rhs: Vec<f64> = (0..N).map(|i| -(g[i] as f64) * spans[i]).collect();
-        let Some(d) = cholesky_solve(&a, &rhs, N) else {
-            mu *= 5.0;
-            continue;
-        };
-        let mut trial = x;
-        for k in 0..N {
-            trial[k] += (d[k].clamp(-LM_MAX_STEP, LM_MAX_STEP) * spans[k]) as f32;
-        }
-        project(&mut trial);
-        let a_trial = Appearance::from_slice(&trial);
-        let (m2, g2, h2) = ev.loss_grad_hessian(cache, &a_trial);
-        let l2 = total_loss(m2, &trial);
-        if l2.is_finite() && l2 < loss {
-            (x, g, hess, loss) = (trial, g2, h2, l2);
-            mu = (mu / 3.0).max(1e-7);
-        } else {
-            mu *= 5.0;
-        }
+    let spans: Vec<f64> = PARAMS[..N_APPEARANCE].iter().map(|p| p.span() as f64).collect();
+    let opts =
+        LmOptions { max_trials: iters, max_step: LM_MAX_STEP, damping_abs: LM_DAMPING_FLOOR, ..LmOptions::default() };
+    let mut problem = AppearanceLm { ev, cache, lin: Default::default() };
+    let out = lm::minimize(&mut problem, cloth.appearance.to_vec(), &spans, &opts, stop);
+    cloth.appearance = Appearance::from_slice(&out.x);
+    out.loss as f32
+}
+
+/// Floor of the damping term `ε` added to the scaled Hessian's diagonal: `ε = max(1e-6·max diag,
+/// 1e-6·1e-12)`, which equals `1e-6·max(max diag, 1e-12)` bit for bit (rounding is monotone), the
+/// polish's damping since it was written; `LmOptions`'s default floor (1e-12) would give other
+/// steps where the scaled Hessian is nearly zero (an all-clipped render).
+const LM_DAMPING_FLOOR: f64 = 1e-6 * 1e-12;
+
+/// The appearance at fixed geometry as a Levenberg–Marquardt problem: loss MSE + barrier, the
+/// exact gradient and Gauss–Newton Hessian of one derivative shading (kept from `loss` for
+/// `linearise`, which [`lm::minimize`] calls right after `loss` at the same point), steps
+/// projected into the Table-1 ranges (where the barrier is zero).
+struct AppearanceLm<'a> {
+    ev: &'a Evaluator,
+    cache: &'a crate::render::PathCache,
+    lin: (Vec<f64>, Vec<f64>),
+}
+
+impl LmProblem for AppearanceLm<'_> {
+    type Point = [f32; N_APPEARANCE];
+
+    fn loss(&mut self, x: &[f32; N_APPEARANCE]) -> f64 {
+        let (m, g, h) = self.ev.loss_grad_hessian(self.cache, &Appearance::from_slice(x));
+        self.lin = (g.iter().map(|&v| v as f64).collect(), h);
+        total_loss(m, x) as f64
     }
-    cloth.appearance = Appearance::from_slice(&x);
-    loss
+
+    fn linearise(&mut self, _x: &[f32; N_APPEARANCE]) -> (Vec<f64>, Vec<f64>) {
+        std::mem::take(&mut self.lin)
+    }
+
+    fn step(&self, x: &[f32; N_APPEARANCE], delta: &[f64]) -> [f32; N_APPEARANCE] {
+        std::array::from_fn(|k| (x[k] + delta[k] as f32).clamp(PARAMS[k].min, PARAMS[k].max))
+    }
 }
 
 /// One Newton step of the two yarn radii from central differences (four re-traces at `±h`, the
@@ -245,7 +216,17 @@ pub(super) fn polish(
 /// Appearance scalars that shape the lobes and the self-shadowing rather than set a colour
 /// (`m_r`, `α^S`, `α^S_y`, `η^S`, `η^S_y`, `A^S`, `A^B`, `G_p`, `G_f`): the loss has separate basins
 /// in them (a sharp specular lobe is not reached by descent from a rough one).
-const SHAPE_SCALARS: [usize; 9] = [0, 10, 11, 12, 13, 14, 15, 28, 29];
+const SHAPE_SCALARS: [usize; 9] = [
+    param::M_R,
+    param::ALPHA_S,
+    param::ALPHA_S_Y,
+    param::ETA_S,
+    param::ETA_S_Y,
+    param::A_S,
+    param::A_B,
+    param::G_P,
+    param::G_F,
+];
 
 /// Multi-start Levenberg–Marquardt of the appearance at fixed geometry: the cloth's own
 /// appearance, then `n` starts with the [`SHAPE_SCALARS`] drawn uniformly in their ranges (the
@@ -270,8 +251,7 @@ pub(super) fn appearance_restarts(
         }
         let mut x = start;
         for k in SHAPE_SCALARS {
-            let r = &APPEARANCE_RANGES[k];
-            x[k] = r.min + rng.random::<f32>() * (r.max - r.min);
+            x[k] = PARAMS[k].from_fraction(rng.random::<f32>());
         }
         let mut c = cloth.clone();
         c.appearance = Appearance::from_slice(&x);
@@ -290,16 +270,6 @@ mod tests {
     use crate::fit::target::fit_scene;
     use crate::render::{Prepared, RenderOptions};
     use crate::scene::LightRig;
-
-    #[test]
-    fn cholesky_solves_spd_and_refuses_indefinite() {
-        let a = [4.0, 2.0, 0.0, 2.0, 5.0, 1.0, 0.0, 1.0, 3.0];
-        let x_true = [1.0, -2.0, 0.5];
-        let b: Vec<f64> = (0..3).map(|i| (0..3).map(|j| a[i * 3 + j] * x_true[j]).sum()).collect();
-        let x = cholesky_solve(&a, &b, 3).expect("SPD");
-        x.iter().zip(x_true).for_each(|(u, v)| assert!((u - v).abs() < 1e-12, "{x:?}"));
-        assert!(cholesky_solve(&[1.0, 2.0, 2.0, 1.0], &[1.0, 1.0], 2).is_none());
-    }
 
     /// An evaluator whose target is `truth` rendered with the evaluator's own samples: the loss
     /// at the truth is exactly zero, so what the optimiser leaves is its own error.
@@ -324,7 +294,7 @@ mod tests {
         let after = lm_appearance(&ev, &cache, &mut cloth, 15, &AtomicBool::new(false));
         assert!(after.is_finite() && after < before / 100.0, "loss {before:.3e} -> {after:.3e}");
         let x = cloth.appearance.to_vec();
-        assert!(x.iter().zip(APPEARANCE_RANGES).all(|(v, r)| *v >= r.min && *v <= r.max), "left the ranges: {x:?}");
+        assert!(x.iter().zip(&PARAMS).all(|(v, r)| r.contains(*v)), "left the ranges: {x:?}");
         // The body reflection colours, which every lit pixel shows, come back within 0.05.
         for k in 0..3 {
             assert!((cloth.appearance.r_b_e[k] - truth.appearance.r_b_e[k]).abs() < 0.05, "{:?}", cloth.appearance);

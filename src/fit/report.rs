@@ -96,8 +96,8 @@ impl EvalReport {
             s += &format!("| {k} | {secs:.1} | {:.3} |\n", quantile(&med, 0.5));
         }
         s += "\nPer-parameter error, % of the Table-1 range (median / 90th percentile over the targets, the format of \
-               seed 002's Table 2), and over the targets whose picture determines the parameter (Cramér–Rao bound ≤ 2.5 % \
-               of the range, `src/fit/identify.rs`; radii always, n_p and n_f never counted):\n\n\
+               Table 2 of Li et al. 2024 [Li24]), and over the targets whose picture determines the parameter \
+               (Cramér–Rao bound ≤ 2.5 % of the range, `src/fit/identify.rs`; radii always, n_p and n_f never counted):\n\n\
                | parameter | median % | p90 % | identifiable in | median % there |\n|---|---|---|---|---|\n";
         for (k, name) in param_names().iter().enumerate() {
             let v: Vec<f32> = self.cases.iter().filter_map(|c| c.errors.get(k).copied()).collect();

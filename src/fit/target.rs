@@ -34,45 +34,8 @@ pub fn cell_rect(n_e: usize, i: usize, j: usize, c: u32) -> (u32, u32, u32, u32)
     (j as u32 * c, r * c, (j as u32 + 1) * c, (r + 1) * c)
 }
 
-/// Area-weighted (box) resampling to `w × h` (exact for integer factors; upsampling repeats).
-pub fn resample(img: &Image, w: u32, h: u32) -> Image {
-    if img.width == w && img.height == h {
-        return img.clone();
-    }
-    let weights = |n_src: u32, n_dst: u32| -> Vec<Vec<(u32, f32)>> {
-        let s = n_src as f64 / n_dst as f64;
-        (0..n_dst)
-            .map(|i| {
-                let (a, b) = (i as f64 * s, (i + 1) as f64 * s);
-                let mut v = Vec::new();
-                let mut j = a.floor() as u32;
-                while (j as f64) < b && j < n_src {
-                    let wgt = (b.min(j as f64 + 1.0) - a.max(j as f64)) / s;
-                    if wgt > 0.0 {
-                        v.push((j, wgt as f32));
-                    }
-                    j += 1;
-                }
-                v
-            })
-            .collect()
-    };
-    let (wx, wy) = (weights(img.width, w), weights(img.height, h));
-    let mut data = Vec::with_capacity((w * h) as usize);
-    for ys in &wy {
-        for xs in &wx {
-            let mut acc = [0.0f32; 3];
-            for &(y, a) in ys {
-                for &(x, b) in xs {
-                    let p = img.get(x, y);
-                    (0..3).for_each(|k| acc[k] += a * b * p[k]);
-                }
-            }
-            data.push(acc);
-        }
-    }
-    Image::new(w, h, data)
-}
+// The fit's box resampling is the shared one (`tests/grid.rs` and the input stage name it here).
+pub use crate::math::resample::resample;
 
 /// Tile an image `nx × ny` times.
 pub fn tile(img: &Image, nx: u32, ny: u32) -> Image {

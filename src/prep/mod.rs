@@ -28,10 +28,7 @@ mod testutil;
 use image::Rgb32FImage;
 use serde::Serialize;
 
-/// The dense linear algebra now lives in [`crate::math::linalg`]; re-exported here for the
-/// callers that still name it `prep::linalg`.
-pub use crate::math::linalg;
-pub use linalg::Homography;
+pub use crate::math::linalg::Homography;
 pub use regularize::KpcaParams;
 
 use grid::{analyze_axis, AxisGrid};
@@ -255,7 +252,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         rectify::Rectified {
             image: img.clone(),
             angle_deg: 0.0,
-            homography: linalg::IDENTITY,
+            homography: crate::math::linalg::IDENTITY,
             perspective_applied: false,
         }
     };
