@@ -4,8 +4,8 @@
 use super::progress::IndicatifProgress;
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use woven::fit::demo::{demo_cloth, param_errors, synthetic_target};
 use woven::fit::eval::{eval, Ablation, EvalOptions};
@@ -14,6 +14,7 @@ use woven::fit::{check_input, fit, write_fit_outputs, FitMode, FitOptions, FitRe
 use woven::image_io::Image;
 use woven::params::{ClothParams, APPEARANCE_RANGES};
 use woven::pattern::{WeavePattern, MAX_SIDE};
+use woven::progress::Progress;
 use woven::scene::LightRig;
 
 /// `--mode` of `woven fit` (mirror of [`FitMode`]).
@@ -183,7 +184,8 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         Image::load(&args.image, MIN_INPUT_SIDE).with_context(|| format!("loading {}", args.image.display()))?;
     check_input(&input).with_context(|| format!("checking {}", args.image.display()))?;
     let staging = Staging::new(&args.out)?;
-    opts.control.progress = Arc::new(IndicatifProgress::new(true));
+    let beat = Arc::new(Heartbeat::new(true, HEARTBEAT_S));
+    opts.control.progress = beat.clone();
     let stop = opts.control.stop.clone();
     let flag = stop.clone();
     // Only one handler per process; a second fit in the same process keeps the first handler.
@@ -194,13 +196,16 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         input.width,
         input.height
     );
-    let res = fit(&input, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
-    // The flag also counts when it was set during the finish, which cuts the polish short
-    // without marking the result as stopped.
-    let stopped = res.stopped || stop.load(Ordering::SeqCst);
-    warn_all(&res.warnings);
-    eprintln!("writing the outputs (full-size render, comparisons, geometry export)");
-    warn_all(&write_fit_outputs(&res, staging.dir(), !args.no_noise, args.threads)?);
+    let (res, stopped) = beat.run(|| {
+        let res = fit(&input, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
+        // The flag also counts when it was set during the finish, which cuts the polish short
+        // without marking the result as stopped.
+        let stopped = res.stopped || stop.load(Ordering::SeqCst);
+        warn_all(&res.warnings);
+        beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
+        warn_all(&write_fit_outputs(&res, staging.dir(), !args.no_noise, args.threads)?);
+        Ok((res, stopped))
+    })?;
     let dest = if stopped { sibling(&args.out, "partial")? } else { args.out.clone() };
     staging.install(&dest)?;
     print_fit(&args.image, &dest, &res);
@@ -213,6 +218,109 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         eprintln!("stopped early: the best state so far is in {}; {} {kept}", dest.display(), args.out.display());
     }
     Ok(())
+}
+
+/// Quiet time after which [`Heartbeat`] prints a line in `woven fit`.
+const HEARTBEAT_S: f64 = 20.0;
+
+/// The library's progress for `woven fit`: forwards every stage to the bars
+/// ([`IndicatifProgress`]) and, while no stage runs, prints a line after every `quiet_s` seconds
+/// ([`HEARTBEAT_S`]) of silence naming the last stage that reported. Some steps report no stage of their own (the
+/// preparation, the finish after the joint loop, the full-size render of the outputs) and take
+/// minutes on a big photo; without a sign of life they would pass for a hang.
+struct Heartbeat {
+    bars: IndicatifProgress,
+    state: Mutex<Beat>,
+    quiet_s: f64,
+}
+
+/// What [`Heartbeat`] knows of the run.
+struct Beat {
+    /// The stage running, if any (it has its own bar or lines).
+    stage: Option<String>,
+    /// The last stage or step that reported.
+    last: String,
+    /// When anything was last reported (or printed).
+    since: Instant,
+}
+
+impl Heartbeat {
+    /// A heartbeat over visible bars (`show`) that speaks after `quiet_s` seconds of silence.
+    fn new(show: bool, quiet_s: f64) -> Self {
+        let state = Beat { stage: None, last: "the start".into(), since: Instant::now() };
+        Heartbeat { bars: IndicatifProgress::new(show), state: Mutex::new(state), quiet_s }
+    }
+
+    /// Note the start of a step of the command itself (outside the library's stages) and print it;
+    /// later lines name it by the part of `what` before any parenthesis.
+    fn phase(&self, what: &str) {
+        self.bars.message(what);
+        if let Ok(mut b) = self.state.lock() {
+            b.last = format!("`{}` began", what.split(" (").next().unwrap_or(what));
+            b.since = Instant::now();
+        }
+    }
+
+    /// Print a line when no stage runs and nothing was reported for `quiet_s` seconds; whether
+    /// it printed.
+    fn tick(&self, started: Instant) -> bool {
+        if let Ok(mut b) = self.state.lock() {
+            if b.stage.is_none() && b.since.elapsed().as_secs_f64() >= self.quiet_s {
+                let line =
+                    format!("still working ({:.0} s in all; last report: {})", started.elapsed().as_secs_f64(), b.last);
+                self.bars.message(&line);
+                b.since = Instant::now();
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Run `work` while a thread calls [`Heartbeat::tick`] every second.
+    fn run<T>(&self, work: impl FnOnce() -> Result<T>) -> Result<T> {
+        let done = AtomicBool::new(false);
+        let started = Instant::now();
+        std::thread::scope(|s| {
+            s.spawn(|| {
+                while !done.load(Ordering::Relaxed) {
+                    std::thread::sleep(std::time::Duration::from_millis(250));
+                    self.tick(started);
+                }
+            });
+            let out = work();
+            done.store(true, Ordering::Relaxed);
+            out
+        })
+    }
+}
+
+impl Progress for Heartbeat {
+    fn begin(&self, stage: &str, total: u64) {
+        if let Ok(mut b) = self.state.lock() {
+            b.stage = Some(stage.to_string());
+            b.last = format!("`{stage}` began");
+            b.since = Instant::now();
+        }
+        self.bars.begin(stage, total);
+    }
+
+    fn advance(&self, n: u64) {
+        self.bars.advance(n);
+    }
+
+    fn message(&self, msg: &str) {
+        self.bars.message(msg);
+    }
+
+    fn finish(&self) {
+        if let Ok(mut b) = self.state.lock() {
+            if let Some(stage) = b.stage.take() {
+                b.last = format!("`{stage}` ended");
+            }
+            b.since = Instant::now();
+        }
+        self.bars.finish();
+    }
 }
 
 /// The sibling of folder `out` named `<name>.<suffix>` (`OUT.partial`, `OUT.tmp-<pid>`); an error
@@ -354,16 +462,22 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     let truth = demo_cloth();
     let mut opts = if fast { FitOptions::fast() } else { FitOptions::default() };
     opts.input.prep = false;
-    opts.control.progress = Arc::new(IndicatifProgress::new(true));
+    let beat = Arc::new(Heartbeat::new(true, HEARTBEAT_S));
+    opts.control.progress = beat.clone();
     let threads = opts.control.threads;
     // Staged beside `out_dir` and swapped in at the end, as `woven fit` does: an interrupted demo
     // leaves the previous one whole.
     let staging = Staging::new(out_dir)?;
-    let target = synthetic_target(&truth, opts.render.px_per_cell, 256, 9_999, threads);
-    target.save_png(&staging.dir().join("target.png"))?;
-    let res = fit(&target, &opts)?;
-    warn_all(&res.warnings);
-    warn_all(&write_fit_outputs(&res, staging.dir(), false, threads)?);
+    let res = beat.run(|| {
+        beat.phase("rendering the hidden target");
+        let target = synthetic_target(&truth, opts.render.px_per_cell, 256, 9_999, threads);
+        target.save_png(&staging.dir().join("target.png"))?;
+        let res = fit(&target, &opts)?;
+        warn_all(&res.warnings);
+        beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
+        warn_all(&write_fit_outputs(&res, staging.dir(), false, threads)?);
+        Ok(res)
+    })?;
     staging.install(out_dir)?;
     let exact = res.cloth.pattern.reduced().equivalent(&truth.pattern);
     println!("{}", fmt_table(&res.cloth, &truth));
@@ -510,6 +624,25 @@ mod tests {
         for bad in ["NaN", "inf", "-inf", "-5", "0", "x"] {
             assert!(parse_energy_scale(bad).unwrap_err().contains("finite number > 0"), "{bad}");
         }
+    }
+
+    #[test]
+    fn the_heartbeat_speaks_only_between_stages_after_silence() {
+        let start = Instant::now();
+        let quiet = Heartbeat::new(false, 3600.0);
+        assert!(!quiet.tick(start), "not before an hour of silence");
+        let beat = Heartbeat::new(false, 0.0);
+        assert!(beat.tick(start));
+        assert_eq!(beat.state.lock().unwrap().last, "the start");
+        beat.begin("pre-estimate", 2);
+        assert!(!beat.tick(start), "a running stage has its own bar");
+        beat.advance(2);
+        beat.finish();
+        assert_eq!(beat.state.lock().unwrap().last, "`pre-estimate` ended");
+        assert!(beat.tick(start));
+        beat.phase("writing the outputs (full-size render)");
+        assert_eq!(beat.state.lock().unwrap().last, "`writing the outputs` began");
+        assert_eq!(beat.run(|| Ok(7)).unwrap(), 7);
     }
 
     #[test]
