@@ -4,16 +4,17 @@
 use super::progress::IndicatifProgress;
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use woven::fit::demo::{demo_cloth, param_errors, synthetic_target};
 use woven::fit::eval::{eval, Ablation, EvalOptions};
 use woven::fit::report::quantile;
-use woven::fit::{fit, write_fit_outputs, FitMode, FitOptions, FitResult, MIN_INPUT_SIDE};
+use woven::fit::{check_input, fit, write_fit_outputs, FitMode, FitOptions, FitResult, MIN_INPUT_SIDE};
 use woven::image_io::Image;
 use woven::params::{ClothParams, APPEARANCE_RANGES};
 use woven::pattern::{WeavePattern, MAX_SIDE};
+use woven::progress::Progress;
 use woven::scene::LightRig;
 
 /// `--mode` of `woven fit` (mirror of [`FitMode`]).
@@ -39,7 +40,9 @@ impl From<ModeArg> for FitMode {
 pub struct FitArgs {
     /// Photo or one-repeat crop (PNG, JPEG or EXR).
     pub image: PathBuf,
-    /// Output folder (fit.json, fit.png, compare.png, trace.png, log.jsonl, prep.json).
+    /// Output folder (fit.json, fit.png, compare.png, trace.png, log.jsonl, prep.json, noise.json,
+    /// export/). Written beside it first and swapped in when the fit completes, so it only ever
+    /// holds a complete fit; a fit stopped early (Ctrl-C) goes to `OUT.partial` instead.
     #[arg(long, default_value = "out/fit")]
     pub out: PathBuf,
     /// joint (annealing + gradient descent in one loop) or separate (pattern first).
@@ -64,24 +67,25 @@ pub struct FitArgs {
     #[arg(long, default_value_t = 16)]
     pub px_per_cell: u32,
     /// Samples per pixel of the fit renders.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = parse_spp)]
     pub spp: u32,
     /// Seed of renders and proposals.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, allow_negative_numbers = true, value_parser = super::parse_seed)]
     pub seed: u64,
     /// Light rig assumed for the photo: default, front, back, both, sides.
     #[arg(long, default_value = "default")]
-    pub lights: String,
+    pub lights: LightRig,
     /// Pre-estimator network for the parameters without an analytic pre-estimate (e.g.
     /// models/pre_estimator.safetensors). Off by default: the shipped model made fits worse (pattern
     /// exact 0.50 vs 0.75 without it, docs/benchmarks.md).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Energy per unit MSE of the annealing (default: calibrated so half of early uphill moves pass).
-    #[arg(long)]
+    /// Energy per unit MSE of the annealing, a finite number > 0 (default: calibrated so half of
+    /// early uphill moves pass).
+    #[arg(long, allow_negative_numbers = true, value_parser = parse_energy_scale)]
     pub energy_scale: Option<f64>,
     /// Worker threads.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::parse_threads)]
     pub threads: Option<usize>,
     /// Fast settings (10 px per cell, 100 iterations).
     #[arg(long)]
@@ -96,7 +100,7 @@ pub struct FitArgs {
 }
 
 impl FitArgs {
-    /// Options for [`fit`] (errors for a bad pattern, grid or light rig).
+    /// Options for [`fit`] (errors for a bad pattern or grid).
     pub fn to_options(&self) -> Result<FitOptions> {
         let mut o = if self.fast { FitOptions::fast() } else { FitOptions::default() };
         if let Some(s) = &self.pattern {
@@ -105,8 +109,7 @@ impl FitArgs {
         if let Some(g) = &self.grid {
             o.input.grid = Some(parse_grid(g)?);
         }
-        o.render.lights = LightRig::named(&self.lights)
-            .with_context(|| format!("unknown light rig {:?} (default, front, back, both, sides)", self.lights))?;
+        o.render.lights = self.lights.clone();
         o.input.prep = !self.no_prep;
         o.pre.enabled = !self.no_pre_estimate;
         o.pre.model = self.model.clone();
@@ -116,11 +119,30 @@ impl FitArgs {
         if !self.fast {
             o.render.px_per_cell = self.px_per_cell;
         }
-        o.render.spp = self.spp.max(1);
+        o.render.spp = self.spp;
         o.render.seed = self.seed;
         o.control.threads = self.threads;
         o.finish.svcolor = u32::from(self.svcolor);
         Ok(o)
+    }
+}
+
+/// Clap value parser of `--spp` and `--target-spp`: the range a parameter file's `scene.spp`
+/// allows, refused with the same message `woven render --spp` gives (a fit render needs at least
+/// one sample per pixel; 0 used to be quietly raised to 1 here and refused everywhere else).
+fn parse_spp(s: &str) -> Result<u32, String> {
+    let n: u32 = s.trim().parse().map_err(|_| format!("spp must be a whole number from 1 to 65536, got `{s}`"))?;
+    woven::params::check_range("spp", n as f64, 1.0, 65536.0).map_err(|e| e.to_string())?;
+    Ok(n)
+}
+
+/// Clap value parser of `--energy-scale`: a finite number > 0. The annealing's energy is
+/// `E = K·MSE` and an uphill move passes with probability `exp(−ΔE/T)` (Metropolis), so NaN or ∞
+/// would refuse every uphill move and 0 or a negative `K` would accept every one of them.
+fn parse_energy_scale(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(k) if k.is_finite() && k > 0.0 => Ok(k),
+        _ => Err(format!("energy scale must be a finite number > 0 (energy per unit MSE), got `{s}`")),
     }
 }
 
@@ -144,20 +166,247 @@ fn warn_all(warnings: &[String]) {
     }
 }
 
-/// `woven fit`: load, fit (Ctrl-C stops and keeps the best so far), write the outputs.
+/// `woven fit`: check the arguments, the input and the output folder, fit (Ctrl-C stops and
+/// keeps the best so far), write the outputs beside `--out` and swap them into place.
+///
+/// Everything that can be refused is refused before the fit starts (minutes on a big photo): the
+/// options, the model file, the image and the output folder. A complete fit replaces `--out`
+/// whole; a fit stopped early goes to `OUT.partial` and leaves an earlier complete fit in `--out`
+/// as it was.
 pub fn run_fit(args: &FitArgs) -> Result<()> {
     let mut opts = args.to_options()?;
-    opts.control.progress = Arc::new(IndicatifProgress::new(true));
+    if let Some(m) = &args.model {
+        // Refused here (a FIFO, a folder, a bad file) rather than after preparation; the fit
+        // loads it again where it applies the prediction.
+        woven::pre::load_model(m).with_context(|| format!("--model {}", m.display()))?;
+    }
     let input =
         Image::load(&args.image, MIN_INPUT_SIDE).with_context(|| format!("loading {}", args.image.display()))?;
+    check_input(&input).with_context(|| format!("checking {}", args.image.display()))?;
+    let staging = Staging::new(&args.out)?;
+    let beat = Arc::new(Heartbeat::new(true, HEARTBEAT_S));
+    opts.control.progress = beat.clone();
     let stop = opts.control.stop.clone();
+    let flag = stop.clone();
     // Only one handler per process; a second fit in the same process keeps the first handler.
-    let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
-    let res = fit(&input, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
-    warn_all(&res.warnings);
-    warn_all(&write_fit_outputs(&res, &args.out, !args.no_noise, args.threads)?);
-    print_fit(&args.image, &args.out, &res);
+    let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    eprintln!(
+        "fitting {} ({}×{} px): preparation, pre-estimation, joint fit, finish; Ctrl-C stops early and keeps the best state so far",
+        args.image.display(),
+        input.width,
+        input.height
+    );
+    let (res, stopped) = beat.run(|| {
+        let res = fit(&input, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
+        // The flag also counts when it was set during the finish, which cuts the polish short
+        // without marking the result as stopped.
+        let stopped = res.stopped || stop.load(Ordering::SeqCst);
+        warn_all(&res.warnings);
+        beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
+        warn_all(&write_fit_outputs(&res, staging.dir(), !args.no_noise, args.threads)?);
+        Ok((res, stopped))
+    })?;
+    let dest = if stopped { sibling(&args.out, "partial")? } else { args.out.clone() };
+    staging.install(&dest)?;
+    print_fit(&args.image, &dest, &res);
+    if stopped {
+        let kept = if args.out.join("fit.json").is_file() {
+            "keeps the earlier complete fit"
+        } else {
+            "was not written: it only ever holds a complete fit"
+        };
+        eprintln!("stopped early: the best state so far is in {}; {} {kept}", dest.display(), args.out.display());
+    }
     Ok(())
+}
+
+/// Quiet time after which [`Heartbeat`] prints a line in `woven fit`.
+const HEARTBEAT_S: f64 = 20.0;
+
+/// The library's progress for `woven fit`: forwards every stage to the bars
+/// ([`IndicatifProgress`]) and, while no stage runs, prints a line after every `quiet_s` seconds
+/// ([`HEARTBEAT_S`]) of silence naming the last stage that reported. Some steps report no stage of their own (the
+/// preparation, the finish after the joint loop, the full-size render of the outputs) and take
+/// minutes on a big photo; without a sign of life they would pass for a hang.
+struct Heartbeat {
+    bars: IndicatifProgress,
+    state: Mutex<Beat>,
+    quiet_s: f64,
+}
+
+/// What [`Heartbeat`] knows of the run.
+struct Beat {
+    /// The stage running, if any (it has its own bar or lines).
+    stage: Option<String>,
+    /// The last stage or step that reported.
+    last: String,
+    /// When anything was last reported (or printed).
+    since: Instant,
+}
+
+impl Heartbeat {
+    /// A heartbeat over visible bars (`show`) that speaks after `quiet_s` seconds of silence.
+    fn new(show: bool, quiet_s: f64) -> Self {
+        let state = Beat { stage: None, last: "the start".into(), since: Instant::now() };
+        Heartbeat { bars: IndicatifProgress::new(show), state: Mutex::new(state), quiet_s }
+    }
+
+    /// Note the start of a step of the command itself (outside the library's stages) and print it;
+    /// later lines name it by the part of `what` before any parenthesis.
+    fn phase(&self, what: &str) {
+        self.bars.message(what);
+        if let Ok(mut b) = self.state.lock() {
+            b.last = format!("`{}` began", what.split(" (").next().unwrap_or(what));
+            b.since = Instant::now();
+        }
+    }
+
+    /// Print a line when no stage runs and nothing was reported for `quiet_s` seconds; whether
+    /// it printed.
+    fn tick(&self, started: Instant) -> bool {
+        if let Ok(mut b) = self.state.lock() {
+            if b.stage.is_none() && b.since.elapsed().as_secs_f64() >= self.quiet_s {
+                let line =
+                    format!("still working ({:.0} s in all; last report: {})", started.elapsed().as_secs_f64(), b.last);
+                self.bars.message(&line);
+                b.since = Instant::now();
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Run `work` while a thread calls [`Heartbeat::tick`] every second.
+    fn run<T>(&self, work: impl FnOnce() -> Result<T>) -> Result<T> {
+        let done = AtomicBool::new(false);
+        let started = Instant::now();
+        std::thread::scope(|s| {
+            s.spawn(|| {
+                while !done.load(Ordering::Relaxed) {
+                    std::thread::sleep(std::time::Duration::from_millis(250));
+                    self.tick(started);
+                }
+            });
+            let out = work();
+            done.store(true, Ordering::Relaxed);
+            out
+        })
+    }
+}
+
+impl Progress for Heartbeat {
+    fn begin(&self, stage: &str, total: u64) {
+        if let Ok(mut b) = self.state.lock() {
+            b.stage = Some(stage.to_string());
+            b.last = format!("`{stage}` began");
+            b.since = Instant::now();
+        }
+        self.bars.begin(stage, total);
+    }
+
+    fn advance(&self, n: u64) {
+        self.bars.advance(n);
+    }
+
+    fn message(&self, msg: &str) {
+        self.bars.message(msg);
+    }
+
+    fn finish(&self) {
+        if let Ok(mut b) = self.state.lock() {
+            if let Some(stage) = b.stage.take() {
+                b.last = format!("`{stage}` ended");
+            }
+            b.since = Instant::now();
+        }
+        self.bars.finish();
+    }
+}
+
+/// The sibling of folder `out` named `<name>.<suffix>` (`OUT.partial`, `OUT.tmp-<pid>`); an error
+/// when `out` names no folder of its own (`.`, `..`, `/`), which could not be replaced as a whole.
+fn sibling(out: &Path, suffix: &str) -> Result<PathBuf> {
+    match out.file_name() {
+        Some(name) => Ok(out.with_file_name(format!("{}.{suffix}", name.to_string_lossy()))),
+        None => bail!("--out {}: name a folder to create or replace, e.g. --out out/fit", out.display()),
+    }
+}
+
+/// A temporary folder beside the output folder (`OUT.tmp-<pid>`) that receives the files of a run
+/// and is renamed into place when they are all written, so an interrupted or failed run never
+/// leaves a half-written output folder. Removed on drop unless installed.
+#[derive(Debug)]
+struct Staging {
+    tmp: PathBuf,
+    installed: bool,
+}
+
+impl Staging {
+    /// Create the staging folder of `out`: checks, before any work, that `out` is a folder or does
+    /// not exist yet, and that its parent can be created and written.
+    fn new(out: &Path) -> Result<Self> {
+        let tmp = sibling(out, &format!("tmp-{}", std::process::id()))?;
+        if let Ok(meta) = std::fs::metadata(out) {
+            if !meta.is_dir() {
+                bail!("--out {} exists and is not a folder", out.display());
+            }
+        }
+        let parent = match out.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        std::fs::create_dir_all(parent).with_context(|| {
+            format!("--out {}: cannot create its parent folder {}", out.display(), parent.display())
+        })?;
+        // A leftover of an earlier run that had this process id (a killed run).
+        if tmp.exists() {
+            std::fs::remove_dir_all(&tmp).with_context(|| format!("removing the stale {}", tmp.display()))?;
+        }
+        std::fs::create_dir(&tmp)
+            .with_context(|| format!("--out {}: cannot write in {}", out.display(), parent.display()))?;
+        let staging = Staging { tmp, installed: false };
+        // Creating a folder can succeed where writing a file fails (a full disk, a quota).
+        let probe = staging.tmp.join("probe");
+        std::fs::write(&probe, b"woven")
+            .and_then(|_| std::fs::remove_file(&probe))
+            .with_context(|| format!("--out {}: cannot write files in {}", out.display(), parent.display()))?;
+        Ok(staging)
+    }
+
+    /// The folder to write the outputs into.
+    fn dir(&self) -> &Path {
+        &self.tmp
+    }
+
+    /// Move the staged outputs to `dest`, replacing a folder already there: `dest` is renamed
+    /// aside, the staging folder renamed to `dest`, then the old one removed (a folder cannot be
+    /// renamed over a non-empty one). If the second rename fails the old folder is put back.
+    fn install(mut self, dest: &Path) -> Result<()> {
+        if std::fs::symlink_metadata(dest).is_ok() {
+            let old = sibling(dest, &format!("old-{}", std::process::id()))?;
+            std::fs::rename(dest, &old).with_context(|| format!("moving the previous {} aside", dest.display()))?;
+            if let Err(e) = std::fs::rename(&self.tmp, dest) {
+                let _ = std::fs::rename(&old, dest);
+                return Err(e).with_context(|| format!("moving {} to {}", self.tmp.display(), dest.display()));
+            }
+            if let Err(e) = std::fs::remove_dir_all(&old) {
+                eprintln!("warning: could not remove the previous outputs moved to {}: {e}", old.display());
+            }
+        } else {
+            std::fs::rename(&self.tmp, dest)
+                .with_context(|| format!("moving {} to {}", self.tmp.display(), dest.display()))?;
+        }
+        self.installed = true;
+        Ok(())
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if !self.installed {
+            let _ = std::fs::remove_dir_all(&self.tmp);
+        }
+    }
 }
 
 /// The one-line summary of a fit.
@@ -213,14 +462,23 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     let truth = demo_cloth();
     let mut opts = if fast { FitOptions::fast() } else { FitOptions::default() };
     opts.input.prep = false;
-    opts.control.progress = Arc::new(IndicatifProgress::new(true));
+    let beat = Arc::new(Heartbeat::new(true, HEARTBEAT_S));
+    opts.control.progress = beat.clone();
     let threads = opts.control.threads;
-    let target = synthetic_target(&truth, opts.render.px_per_cell, 256, 9_999, threads);
-    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
-    target.save_png(&out_dir.join("target.png"))?;
-    let res = fit(&target, &opts)?;
-    warn_all(&res.warnings);
-    warn_all(&write_fit_outputs(&res, out_dir, false, threads)?);
+    // Staged beside `out_dir` and swapped in at the end, as `woven fit` does: an interrupted demo
+    // leaves the previous one whole.
+    let staging = Staging::new(out_dir)?;
+    let res = beat.run(|| {
+        beat.phase("rendering the hidden target");
+        let target = synthetic_target(&truth, opts.render.px_per_cell, 256, 9_999, threads);
+        target.save_png(&staging.dir().join("target.png"))?;
+        let res = fit(&target, &opts)?;
+        warn_all(&res.warnings);
+        beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
+        warn_all(&write_fit_outputs(&res, staging.dir(), false, threads)?);
+        Ok(res)
+    })?;
+    staging.install(out_dir)?;
     let exact = res.cloth.pattern.reduced().equivalent(&truth.pattern);
     println!("{}", fmt_table(&res.cloth, &truth));
     println!(
@@ -270,7 +528,7 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 8)]
     pub count: usize,
     /// Seed of the targets.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, allow_negative_numbers = true, value_parser = super::parse_seed)]
     pub seed: u64,
     /// Ablation: none, no-pre, separate.
     #[arg(long, value_enum, default_value = "none")]
@@ -282,7 +540,7 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 16)]
     pub px_per_cell: u32,
     /// Samples per pixel of the target renders (their noise bounds the PSNR a perfect fit reaches).
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = parse_spp)]
     pub target_spp: u32,
     /// Largest random pattern side.
     #[arg(long, default_value_t = 5)]
@@ -298,7 +556,7 @@ pub struct EvalArgs {
     #[arg(long)]
     pub save: Option<PathBuf>,
     /// Worker threads.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::parse_threads)]
     pub threads: Option<usize>,
 }
 
@@ -348,4 +606,82 @@ pub fn run_eval(args: &EvalArgs) -> Result<()> {
     }
     println!("{}", rep.summary_line());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spp_and_energy_scale_are_checked_with_hints() {
+        assert_eq!(parse_spp("4"), Ok(4));
+        assert_eq!(parse_spp("65536"), Ok(65536));
+        for bad in ["0", "65537"] {
+            assert!(parse_spp(bad).unwrap_err().contains("out of range: allowed [1, 65536]"), "{bad}");
+        }
+        assert!(parse_spp("-1").unwrap_err().contains("whole number"));
+        assert_eq!(parse_energy_scale("2.5"), Ok(2.5));
+        for bad in ["NaN", "inf", "-inf", "-5", "0", "x"] {
+            assert!(parse_energy_scale(bad).unwrap_err().contains("finite number > 0"), "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_heartbeat_speaks_only_between_stages_after_silence() {
+        let start = Instant::now();
+        let quiet = Heartbeat::new(false, 3600.0);
+        assert!(!quiet.tick(start), "not before an hour of silence");
+        let beat = Heartbeat::new(false, 0.0);
+        assert!(beat.tick(start));
+        assert_eq!(beat.state.lock().unwrap().last, "the start");
+        beat.begin("pre-estimate", 2);
+        assert!(!beat.tick(start), "a running stage has its own bar");
+        beat.advance(2);
+        beat.finish();
+        assert_eq!(beat.state.lock().unwrap().last, "`pre-estimate` ended");
+        assert!(beat.tick(start));
+        beat.phase("writing the outputs (full-size render)");
+        assert_eq!(beat.state.lock().unwrap().last, "`writing the outputs` began");
+        assert_eq!(beat.run(|| Ok(7)).unwrap(), 7);
+    }
+
+    #[test]
+    fn siblings_need_a_folder_name() {
+        assert_eq!(sibling(Path::new("out/fit"), "partial").unwrap(), Path::new("out/fit.partial"));
+        assert_eq!(sibling(Path::new("out/fit/"), "tmp-7").unwrap(), Path::new("out/fit.tmp-7"));
+        for bad in [".", "..", "/", "out/.."] {
+            assert!(sibling(Path::new(bad), "partial").unwrap_err().to_string().contains("name a folder"), "{bad}");
+        }
+    }
+
+    #[test]
+    fn staging_replaces_the_folder_whole_or_leaves_it() {
+        let d = tempfile::tempdir().unwrap();
+        let out = d.path().join("nested/out");
+        // First run: the parent is created, the staged files land in a new folder.
+        let st = Staging::new(&out).unwrap();
+        std::fs::write(st.dir().join("a.txt"), b"1").unwrap();
+        st.install(&out).unwrap();
+        assert_eq!(std::fs::read(out.join("a.txt")).unwrap(), b"1");
+        // Second run: the old folder is replaced as a whole (no file of it survives).
+        let st = Staging::new(&out).unwrap();
+        std::fs::write(st.dir().join("b.txt"), b"2").unwrap();
+        st.install(&out).unwrap();
+        assert!(!out.join("a.txt").exists() && out.join("b.txt").is_file());
+        // A run that fails before installing leaves the folder as it was and no temporary.
+        let st = Staging::new(&out).unwrap();
+        std::fs::write(st.dir().join("c.txt"), b"3").unwrap();
+        drop(st);
+        assert!(out.join("b.txt").is_file() && !out.join("c.txt").exists());
+        let names: Vec<String> = std::fs::read_dir(d.path().join("nested"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["out"]);
+        // An output path that is a file, or below one, is refused before any work.
+        let file = d.path().join("file");
+        std::fs::write(&file, b"x").unwrap();
+        assert!(Staging::new(&file).unwrap_err().to_string().contains("not a folder"));
+        assert!(Staging::new(&file.join("out")).unwrap_err().to_string().contains("cannot create its parent"));
+    }
 }

@@ -11,7 +11,16 @@ use anyhow::{bail, Context, Result};
 /// Smallest accepted input side in pixels.
 pub const MIN_INPUT_SIDE: u32 = 16;
 
-/// Check an input image: size and finite values.
+/// Largest linear value accepted in an input image. The fit compares the input with renders of
+/// unit-exposure lights, whose values lie around 0–1 (a bright specular highlight reaches a few
+/// tens); an image with values beyond this was not stored in that scale (a sensor's raw counts, a
+/// badly exported EXR) and would be fitted as a burnt-out white with a meaningless PSNR.
+pub const MAX_INPUT_VALUE: f32 = 1e6;
+
+/// Check an input image before fitting it: at least [`MIN_INPUT_SIDE`] pixels a side, finite
+/// values, at least one positive value (an all-black or all-negative image holds no cloth, and
+/// its PSNR against a black render would be meaningless) and no value above
+/// [`MAX_INPUT_VALUE`] (not a linear image in the renderer's scale).
 pub fn check_input(img: &Image) -> Result<()> {
     if img.width < MIN_INPUT_SIDE || img.height < MIN_INPUT_SIDE {
         bail!(
@@ -21,6 +30,19 @@ pub fn check_input(img: &Image) -> Result<()> {
         );
     }
     img.check_finite("input image").map_err(|e| anyhow::anyhow!("{e}"))?;
+    let max = img.data.iter().flatten().copied().fold(f32::NEG_INFINITY, f32::max);
+    if max <= 0.0 {
+        bail!(
+            "input image has no positive value (its largest is {max}): nothing to fit; \
+             a photo of cloth needs some light (an EXR with negative or zero values only is not a photo)"
+        );
+    }
+    if max > MAX_INPUT_VALUE {
+        bail!(
+            "input image has values up to {max:.3e}; is this a linear image? rescale it so that the cloth's \
+             values lie around 0–1 (the fit's renders use unit-exposure lights; values above {MAX_INPUT_VALUE:e} are refused)"
+        );
+    }
     Ok(())
 }
 
@@ -110,6 +132,22 @@ mod tests {
         assert!(check_input(&img).is_ok());
         img.data[3][0] = f32::INFINITY;
         assert!(check_input(&img).is_err());
+    }
+
+    #[test]
+    fn black_negative_or_absurdly_bright_inputs_are_refused() {
+        for v in [-0.5, 0.0] {
+            let e = check_input(&Image::filled(16, 16, [v; 3])).unwrap_err().to_string();
+            assert!(e.contains("no positive value"), "{v}: {e}");
+        }
+        // One positive pixel in a negative image is enough (a dark photo with a highlight).
+        let mut img = Image::filled(16, 16, [-1.0; 3]);
+        img.data[7][2] = 0.01;
+        assert!(check_input(&img).is_ok());
+        // A linear image scaled by 1e30 is refused with a hint; the largest accepted value passes.
+        let e = check_input(&Image::filled(16, 16, [0.5e30; 3])).unwrap_err().to_string();
+        assert!(e.contains("5.000e29") && e.contains("linear image") && e.contains("rescale"), "{e}");
+        assert!(check_input(&Image::filled(16, 16, [MAX_INPUT_VALUE; 3])).is_ok());
     }
 
     #[test]

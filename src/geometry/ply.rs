@@ -147,9 +147,9 @@ pub struct PlyHit {
     pub normal: Vec3,
     /// Fiber tangent at the hit.
     pub tangent: Vec3,
-    /// Ply-level ambient occlusion `AO_p` ∈ [0,1] (1 for single-ply yarns).
+    /// Ply-level ambient occlusion `AO_p` ∈ \[0,1\] (1 for single-ply yarns).
     pub ao_p: f32,
-    /// Fiber-level ambient occlusion `AO_f` ∈ [0,1].
+    /// Fiber-level ambient occlusion `AO_f` ∈ \[0,1\].
     pub ao_f: f32,
 }
 
