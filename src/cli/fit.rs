@@ -8,7 +8,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use woven::fit::demo::{demo_cloth, param_errors, synthetic_target};
-use woven::fit::eval::{eval, Ablation, EvalOptions};
+use woven::fit::eval::{eval, Ablation, EvalOptions, EvalPath};
+use woven::fit::renders::eval_renders;
 use woven::fit::report::quantile;
 use woven::fit::{check_input, fit, write_fit_outputs, FitMode, FitOptions, FitResult, MIN_INPUT_SIDE};
 use woven::image_io::Image;
@@ -558,6 +559,16 @@ pub struct EvalArgs {
     /// Worker threads.
     #[arg(long, allow_negative_numbers = true, value_parser = super::parse_threads)]
     pub threads: Option<usize>,
+    /// Fit clean one-repeat crops with preparation bypassed (the fit's own view) instead of the
+    /// default photo path (multi-repeat renders, rotated, tilted, exposed, blurred and noisy,
+    /// through preparation).
+    #[arg(long)]
+    pub one_repeat: bool,
+    /// Instead of synthetic targets, fit every image of a folder rendered by another renderer with
+    /// its ground truth (NAME.exr or NAME.png + NAME.json, optional NAME_labels.png; see
+    /// `datagen/mitsuba/README.md`); `--save` gets each fit and `sheet.png` (crop | fit | error).
+    #[arg(long, value_name = "DIR")]
+    pub renders: Option<PathBuf>,
 }
 
 impl EvalArgs {
@@ -565,6 +576,7 @@ impl EvalArgs {
     fn to_options(&self) -> EvalOptions {
         EvalOptions {
             count: self.count,
+            path: if self.one_repeat { EvalPath::OneRepeat } else { EvalPath::Photo },
             seed: self.seed,
             ablation: self.ablation.into(),
             iterations: self.iterations,
@@ -581,6 +593,9 @@ impl EvalArgs {
 /// `woven eval`: fit random targets, print per-target lines, the markdown and the summary as the
 /// last line; append the markdown to `args.markdown` when given.
 pub fn run_eval(args: &EvalArgs) -> Result<()> {
+    if let Some(dir) = &args.renders {
+        return run_eval_renders(dir, args);
+    }
     let rep = eval(&args.to_options(), &mut |i, truth, case| match &case.error {
         Some(e) => eprintln!("target {i}: fit failed: {e}"),
         None => println!(
@@ -599,10 +614,48 @@ pub fn run_eval(args: &EvalArgs) -> Result<()> {
     let md = rep.markdown();
     println!("\n{md}");
     if let Some(p) = &args.markdown {
-        let mut text = std::fs::read_to_string(p).unwrap_or_default();
-        text.push('\n');
-        text.push_str(&md);
-        woven::io::write_atomic(p, text.as_bytes())?;
+        append_markdown(p, &md)?;
+    }
+    println!("{}", rep.summary_line());
+    Ok(())
+}
+
+/// Appends `md` to the markdown file `path` (atomic replace).
+fn append_markdown(path: &Path, md: &str) -> Result<()> {
+    let mut text = std::fs::read_to_string(path).unwrap_or_default();
+    text.push('\n');
+    text.push_str(md);
+    woven::io::write_atomic(path, text.as_bytes())?;
+    Ok(())
+}
+
+/// `woven eval --renders DIR`: fit each image of a cross-renderer folder through preparation and
+/// score it against its ground truth (see [`woven::fit::renders`]).
+fn run_eval_renders(dir: &Path, args: &EvalArgs) -> Result<()> {
+    let mut opts = FitOptions::default();
+    opts.joint.iterations = args.iterations;
+    opts.control.threads = args.threads;
+    opts.render.seed = args.seed;
+    let rep = eval_renders(dir, &opts, args.save.as_ref(), &mut |c| match &c.error {
+        Some(e) => eprintln!("{}: fit failed: {e}", c.name),
+        None => println!(
+            "{}: true {} fit {} exact={} crop_psnr={:.1} dB colour_err={} {:.1} s",
+            c.name,
+            c.truth,
+            c.fit,
+            c.exact,
+            c.crop_psnr_db,
+            c.colour_err.map_or("-".into(), |e| format!("{e:.3}")),
+            c.secs
+        ),
+    })?;
+    if let (Some(save), Some(sheet)) = (&args.save, rep.sheet()) {
+        sheet.save_png(&save.join("sheet.png"))?;
+    }
+    let md = rep.markdown();
+    println!("\n{md}");
+    if let Some(p) = &args.markdown {
+        append_markdown(p, &md)?;
     }
     println!("{}", rep.summary_line());
     Ok(())

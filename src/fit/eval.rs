@@ -1,7 +1,12 @@
-//! The evaluation harness (`woven eval`): random synthetic one-repeat targets with known
-//! parameters, each fitted from scratch and scored — pattern exact up to shift, per-parameter
-//! error, PSNR, the fit re-lit under rigs it never saw, and which parameters the target
-//! determines at all (Cramér–Rao bound, [`super::identify`]).
+//! The evaluation harness (`woven eval`): random synthetic targets with known parameters, each
+//! fitted from scratch and scored — pattern exact up to shift, per-parameter error, PSNR, the fit
+//! re-lit under rigs it never saw, and which parameters the target determines at all (Cramér–Rao
+//! bound, [`super::identify`]).
+//!
+//! By default the targets take the user's path ([`EvalPath::Photo`]): a multi-repeat render with a
+//! random rotation, slight tilt, phase, exposure, blur and noise, fed through preparation exactly
+//! as a photo is. [`EvalPath::OneRepeat`] fits clean one-repeat crops with preparation bypassed
+//! (the fit's own view: it measures the optimiser without the preparation's errors).
 
 use super::demo::{param_errors, random_cloth, synthetic_target};
 use super::evaluator::block_filter;
@@ -42,11 +47,27 @@ impl Ablation {
     }
 }
 
+/// What the evaluation's targets are and how they reach the fit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EvalPath {
+    /// Multi-repeat renders perturbed like photos, through preparation (the user's path).
+    Photo,
+    /// Clean one-repeat renders at the fit's resolution, preparation bypassed.
+    OneRepeat,
+}
+
+/// Image side of the photo-path targets (pixels).
+pub const PHOTO_SIZE: u32 = 256;
+/// Samples per pixel of the photo-path targets (their added sensor noise dominates anyway).
+pub const PHOTO_SPP: u32 = 32;
+
 /// Options of [`eval`].
 #[derive(Clone, Debug)]
 pub struct EvalOptions {
     /// Number of random targets.
     pub count: usize,
+    /// Photo path (default) or one-repeat crops.
+    pub path: EvalPath,
     /// Seed of the targets.
     pub seed: u64,
     /// Ablation.
@@ -59,7 +80,7 @@ pub struct EvalOptions {
     pub target_spp: u32,
     /// Largest random pattern side.
     pub max_side: usize,
-    /// Give the fit the true grid size instead of detecting it.
+    /// Give the fit the true grid size instead of detecting it (one-repeat path only).
     pub known_grid: bool,
     /// Write each target (PNG, and linear EXR that `woven fit` reproduces exactly), its truth and
     /// its fit outputs to `save/target_<i>/`.
@@ -72,6 +93,7 @@ impl Default for EvalOptions {
     fn default() -> Self {
         EvalOptions {
             count: 8,
+            path: EvalPath::Photo,
             seed: 1,
             ablation: Ablation::None,
             iterations: 100,
@@ -153,13 +175,23 @@ fn fit_options(opts: &EvalOptions, i: usize) -> FitOptions {
 /// with its error, a failure to write the files an error.
 fn eval_target(opts: &EvalOptions, i: usize, truth: &ClothParams) -> Result<EvalCase> {
     let mut fo = fit_options(opts, i);
-    let target = synthetic_target(truth, opts.px_per_cell, opts.target_spp, 50_000 + i as u64, opts.threads);
     let true_grid = (truth.pattern.n_e(), truth.pattern.n_a());
-    let grid_ok = if opts.known_grid {
-        fo.input.grid = Some(true_grid);
-        true
-    } else {
-        detect_grid(&target) == Some(true_grid)
+    let (target, mut grid_ok) = match opts.path {
+        EvalPath::OneRepeat => {
+            let target = synthetic_target(truth, opts.px_per_cell, opts.target_spp, 50_000 + i as u64, opts.threads);
+            let grid_ok = if opts.known_grid {
+                fo.input.grid = Some(true_grid);
+                true
+            } else {
+                detect_grid(&target) == Some(true_grid)
+            };
+            (target, grid_ok)
+        }
+        EvalPath::Photo => {
+            fo.input.prep = true;
+            let view = PhotoView::draw(opts.seed, i, truth);
+            (view.render(truth, 50_000 + i as u64, opts.threads), false)
+        }
     };
     let dir = opts.save.as_ref().map(|d| d.join(format!("target_{i}")));
     if let Some(d) = &dir {
@@ -169,6 +201,9 @@ fn eval_target(opts: &EvalOptions, i: usize, truth: &ClothParams) -> Result<Eval
     let res = match fit(&target, &fo) {
         Ok(r) => r,
         Err(e) => {
+            if let Some(d) = &dir {
+                let _ = std::fs::write(d.join("error.txt"), format!("{e:#}\n"));
+            }
             return Ok(EvalCase {
                 truth: truth.pattern.to_string(),
                 fit: "-".into(),
@@ -185,8 +220,11 @@ fn eval_target(opts: &EvalOptions, i: usize, truth: &ClothParams) -> Result<Eval
         }
     };
     let secs = t.elapsed().as_secs_f64();
+    if opts.path == EvalPath::Photo {
+        grid_ok = res.prep.as_ref().is_some_and(|p| (p.n_e, p.n_a) == true_grid);
+    }
     if let Some(d) = &dir {
-        // Without prep there is no noise model, hence no warnings to pass on.
+        // The noise model's warnings (photo path) are not part of the score.
         write_fit_outputs(&res, d, false, opts.threads)?;
     }
     let errors: Vec<f32> = param_errors(&res.cloth, truth).iter().map(|e| e.1).collect();
@@ -211,6 +249,81 @@ fn eval_target(opts: &EvalOptions, i: usize, truth: &ClothParams) -> Result<Eval
         identifiable: identifiable_mask(truth, &fo, opts.target_spp),
         error: None,
     })
+}
+
+/// How a photo-path target is taken: the capture perturbations a photo has and preparation must
+/// undo, drawn per target from `(seed, i)` (its own stream, so the truths are those of the
+/// one-repeat path).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PhotoView {
+    /// Pattern repeats across the image (16–20 px per yarn, at least 2.5 repeats).
+    pub tiles: f32,
+    /// In-plane rotation, degrees, uniform in ±8°.
+    pub rotation_deg: f32,
+    /// View tilt (perspective), degrees: 0 for half the targets, else uniform in 1–4°.
+    pub tilt_deg: f32,
+    /// Phase: offset of the view centre in repeats, uniform in [0, 1)².
+    pub offset: [f32; 2],
+    /// Exposure factor, uniform in 0.7–1.4.
+    pub exposure: f32,
+    /// Gaussian blur σ in pixels (lens, focus), uniform in 0–0.8.
+    pub blur_px: f32,
+    /// Additive Gaussian sensor noise σ (linear units), uniform in 0–0.008.
+    pub noise: f32,
+}
+
+impl PhotoView {
+    /// The view of target `i` of an evaluation with `seed`.
+    pub fn draw(seed: u64, i: usize, truth: &ClothParams) -> PhotoView {
+        use rand::RngExt;
+        let mut rng = StdRng::seed_from_u64(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ (i as u64 + 0x5eed));
+        let n = truth.pattern.n_a().max(truth.pattern.n_e()) as f32;
+        let px_per_yarn = rng.random_range(16.0..20.0f32);
+        PhotoView {
+            tiles: (PHOTO_SIZE as f32 / (n * px_per_yarn)).max(2.5),
+            rotation_deg: rng.random_range(-8.0..8.0),
+            tilt_deg: if rng.random_bool(0.5) { 0.0 } else { rng.random_range(1.0..4.0) },
+            offset: [rng.random_range(0.0..1.0), rng.random_range(0.0..1.0)],
+            exposure: rng.random_range(0.7..1.4),
+            blur_px: rng.random_range(0.0..0.8),
+            noise: rng.random_range(0.0..0.008),
+        }
+    }
+
+    /// Render `truth` as this view ([`PHOTO_SIZE`]², [`PHOTO_SPP`] spp, default rig), then apply
+    /// exposure, blur and noise.
+    pub fn render(&self, truth: &ClothParams, seed: u64, threads: Option<usize>) -> Image {
+        use rand_distr::{Distribution, Normal};
+        let mut scene = crate::scene::Scene {
+            width: PHOTO_SIZE,
+            height: PHOTO_SIZE,
+            spp: PHOTO_SPP,
+            seed,
+            lights: LightRig::default_rig(),
+            ..Default::default()
+        };
+        scene.camera.tiles = self.tiles;
+        scene.camera.rotation_deg = self.rotation_deg;
+        scene.camera.offset = self.offset;
+        if self.tilt_deg > 0.0 {
+            scene.camera.tilt_deg = self.tilt_deg;
+            scene.camera.projection = crate::scene::Projection::Perspective;
+        }
+        let img = render(truth, &scene, &RenderOptions { threads, ..Default::default() });
+        let img = if self.blur_px > 0.05 {
+            Image::from_rgb32f(&crate::prep::image_ops::blur_rgb(&img.to_rgb32f(), self.blur_px))
+        } else {
+            img
+        };
+        let mut rng = StdRng::seed_from_u64(seed ^ 0x6e6f_6973_65);
+        let noise = Normal::new(0.0f32, self.noise.max(1e-9)).unwrap_or_else(|_| Normal::new(0.0, 1e-9).unwrap());
+        let data = img
+            .data
+            .iter()
+            .map(|p| p.map(|v| (v * self.exposure + noise.sample(&mut rng)).max(0.0)))
+            .collect();
+        Image::new(img.width, img.height, data)
+    }
 }
 
 /// Write the target (PNG and linear EXR) and its truth into `dir`.
@@ -266,7 +379,14 @@ mod tests {
 
     #[test]
     fn each_target_gets_its_seed_and_the_ablation_its_switch() {
-        let o = EvalOptions { seed: 5, iterations: 7, px_per_cell: 12, threads: Some(1), ..EvalOptions::default() };
+        let o = EvalOptions {
+            seed: 5,
+            iterations: 7,
+            px_per_cell: 12,
+            threads: Some(1),
+            path: EvalPath::OneRepeat,
+            ..EvalOptions::default()
+        };
         let f = fit_options(&o, 3);
         assert_eq!((f.render.seed, f.joint.iterations, f.render.px_per_cell), (5 + 303, 7, 12));
         assert!(!f.input.prep && f.pre.enabled && f.joint.mode == FitMode::Joint);
@@ -281,7 +401,14 @@ mod tests {
     fn a_fit_that_fails_is_a_case_with_its_error() {
         // At 1 px per cell the target is under the fit's smallest input: the case carries the
         // error, and the evaluation goes on.
-        let o = EvalOptions { count: 1, px_per_cell: 1, target_spp: 1, threads: Some(1), ..EvalOptions::default() };
+        let o = EvalOptions {
+            count: 1,
+            px_per_cell: 1,
+            target_spp: 1,
+            threads: Some(1),
+            path: EvalPath::OneRepeat,
+            ..EvalOptions::default()
+        };
         let mut seen = 0;
         let rep = eval(&o, &mut |i, truth, case| {
             assert_eq!((i, truth.pattern.to_string()), (0, case.truth.clone()));
@@ -292,5 +419,25 @@ mod tests {
         let case = &rep.cases[0];
         assert!(case.error.as_deref().is_some_and(|e| e.contains("at least") || e.contains("px_per_cell")), "{case:?}");
         assert!(!case.exact && case.errors.iter().all(|e| *e == 1.0));
+    }
+
+    #[test]
+    fn photo_views_are_reproducible_varied_and_within_their_ranges() {
+        let truth = ClothParams::preset("twill22").unwrap();
+        let views: Vec<PhotoView> = (0..16).map(|i| PhotoView::draw(3, i, &truth)).collect();
+        assert_eq!(views[4], PhotoView::draw(3, 4, &truth));
+        assert_ne!(views[4], PhotoView::draw(4, 4, &truth));
+        for v in &views {
+            assert!(v.tiles >= 2.5 && v.tiles <= 256.0 / (4.0 * 16.0) + 1e-4, "{v:?}");
+            assert!(v.rotation_deg.abs() <= 8.0 && (0.0..=4.0).contains(&v.tilt_deg), "{v:?}");
+            assert!((0.7..=1.4).contains(&v.exposure) && v.noise < 0.008 && v.blur_px < 0.8, "{v:?}");
+        }
+        assert!(views.iter().any(|v| v.tilt_deg == 0.0) && views.iter().any(|v| v.tilt_deg > 0.0));
+        // The photo is the render scaled by the exposure (no blur, no noise here).
+        let v = PhotoView { tiles: 3.0, blur_px: 0.0, noise: 0.0, exposure: 2.0, ..views[0].clone() };
+        let img = v.render(&truth, 1, Some(1));
+        let base = PhotoView { exposure: 1.0, ..v.clone() }.render(&truth, 1, Some(1));
+        assert_eq!((img.width, img.height), (PHOTO_SIZE, PHOTO_SIZE));
+        assert!(img.data.iter().zip(&base.data).all(|(a, b)| (a[0] - 2.0 * b[0]).abs() < 1e-6));
     }
 }

@@ -47,6 +47,7 @@ pub mod output;
 mod preestimate;
 mod proposal;
 mod refine;
+pub mod renders;
 pub mod report;
 pub mod target;
 mod texture;

@@ -1,0 +1,279 @@
+//! Evaluation on renders by another renderer (`woven eval --renders DIR`): a folder of images with
+//! their ground truth, made by a renderer that is not woven's forward model (e.g. Mitsuba 3 with
+//! its own materials and lights; `datagen/mitsuba/make_set.py` writes such a folder). Each image
+//! takes the user's path (preparation, then the fit) and is scored: pattern exact up to shift, the
+//! fit's crop PSNR, and the mean colour of each yarn family against the input's.
+//!
+//! Folder format, per image `NAME`: `NAME.exr` (linear RGB; `NAME.png`, sRGB, when no EXR),
+//! `NAME.json` with `pattern` (rows = weft yarns along the image horizontal, top to bottom;
+//! columns = warp yarns, left to right; **1 = warp on top**, the opposite of woven's convention)
+//! and optionally `NAME_labels.png` (R/G/B = warp/weft/background coverage per pixel).
+//!
+//! Converting the truth: woven's `P[i][j] = 1` means weft `i` over warp `j`, and woven's row 0 is
+//! the bottom weft of the image (its camera looks down with +y up), so the truth is the renderer's
+//! matrix inverted with its rows reversed.
+
+use super::output::write_fit_outputs;
+use super::report::quantile;
+use super::target::yarn_mean;
+use super::{fit, FitOptions};
+use crate::image_io::Image;
+use crate::pattern::WeavePattern;
+use anyhow::{bail, Context, Result};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Largest distance (linear RGB, per channel) of a yarn family's mean colour that counts as right.
+pub const COLOUR_TOLERANCE: f32 = 0.05;
+
+/// Coverage above which a label pixel belongs to one yarn family only.
+const PURE_COVERAGE: f32 = 0.95;
+
+/// One image of the folder.
+#[derive(Clone, Debug)]
+pub struct RenderCase {
+    /// File stem.
+    pub name: String,
+    /// True pattern in woven's convention.
+    pub truth: String,
+    /// Fitted pattern (`-` when the fit failed).
+    pub fit: String,
+    /// Fitted pattern equal to the truth up to a cyclic shift.
+    pub exact: bool,
+    /// PSNR of the fit against the crop it matched (sRGB, dB).
+    pub crop_psnr_db: f32,
+    /// Largest per-channel distance of the fit's warp and weft mean colours from the input's
+    /// (linear), when the folder has label maps.
+    pub colour_err: Option<f32>,
+    /// Fit seconds.
+    pub secs: f64,
+    /// Why the fit failed.
+    pub error: Option<String>,
+    /// Contact-sheet row: the crop the fit matched | the fit | 4× the absolute error.
+    pub row: Option<Image>,
+}
+
+/// Summary of a folder's cases.
+#[derive(Clone, Debug)]
+pub struct RenderReport {
+    /// The cases, in file-name order.
+    pub cases: Vec<RenderCase>,
+}
+
+impl RenderReport {
+    /// The last line `woven eval --renders` prints.
+    pub fn summary_line(&self) -> String {
+        let n = self.cases.len();
+        let frac = |f: &dyn Fn(&RenderCase) -> bool| self.cases.iter().filter(|c| f(c)).count() as f32 / n.max(1) as f32;
+        let psnr: Vec<f32> = self.cases.iter().map(|c| c.crop_psnr_db).collect();
+        let secs: Vec<f32> = self.cases.iter().map(|c| c.secs as f32).collect();
+        let coloured: Vec<&RenderCase> = self.cases.iter().filter(|c| c.colour_err.is_some()).collect();
+        let colour_ok = coloured.iter().filter(|c| c.colour_err.is_some_and(|e| e <= COLOUR_TOLERANCE)).count();
+        format!(
+            "renders: n={n} pattern_exact={:.2} median_crop_psnr_db={:.1} colour_within_{COLOUR_TOLERANCE}={}/{} failed={} median_fit_s={:.1}",
+            frac(&|c| c.exact),
+            quantile(&psnr, 0.5),
+            colour_ok,
+            coloured.len(),
+            self.cases.iter().filter(|c| c.error.is_some()).count(),
+            quantile(&secs, 0.5),
+        )
+    }
+
+    /// The contact sheet: one row per fitted image (crop | fit | 4× error), black gaps.
+    pub fn sheet(&self) -> Option<Image> {
+        let rows: Vec<&Image> = self.cases.iter().filter_map(|c| c.row.as_ref()).collect();
+        (!rows.is_empty()).then(|| Image::vstack(&rows, 4))
+    }
+
+    /// Markdown table of the cases plus the summary line.
+    pub fn markdown(&self) -> String {
+        let mut s = String::from(
+            "| image | truth | fit | exact | crop PSNR (dB) | colour error | time (s) |\n|---|---|---|---|---|---|---|\n",
+        );
+        for c in &self.cases {
+            s += &format!(
+                "| {} | {} | {} | {} | {:.1} | {} | {:.1} |\n",
+                c.name,
+                c.truth,
+                c.error.as_deref().map_or(c.fit.clone(), |e| format!("failed: {e}")),
+                if c.exact { "yes" } else { "no" },
+                c.crop_psnr_db,
+                c.colour_err.map_or("–".into(), |e| format!("{e:.3}")),
+                c.secs
+            );
+        }
+        s += &format!("\n`{}`\n", self.summary_line());
+        s
+    }
+}
+
+/// The truth of a renderer's pattern matrix (1 = warp on top, row 0 at the image top) in woven's
+/// convention (see the module docs).
+pub fn truth_from_renderer(rows: &[Vec<u8>]) -> Result<WeavePattern> {
+    if rows.is_empty() || rows.iter().any(|r| r.len() != rows[0].len() || r.is_empty()) {
+        bail!("the pattern must be a non-empty rectangular matrix of 0/1");
+    }
+    let woven: Vec<Vec<bool>> = rows.iter().rev().map(|r| r.iter().map(|&v| v == 0).collect()).collect();
+    Ok(WeavePattern::from_rows(&woven)?)
+}
+
+/// The images of `dir` that have a `.json` beside them, sorted by name.
+fn image_stems(dir: &Path) -> Result<Vec<String>> {
+    let mut stems: Vec<String> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok())
+        .filter_map(|e| e.file_name().into_string().ok())
+        .filter_map(|n| n.strip_suffix(".json").map(str::to_string))
+        .filter(|s| s != "index" && (dir.join(format!("{s}.exr")).is_file() || dir.join(format!("{s}.png")).is_file()))
+        .collect();
+    stems.sort();
+    if stems.is_empty() {
+        bail!("{} holds no NAME.json with NAME.exr or NAME.png beside it", dir.display());
+    }
+    Ok(stems)
+}
+
+/// The input's mean colour of the pixels that belong to the warp (`warp = true`) or the weft
+/// only, from the label map (R = warp, G = weft coverage).
+fn family_mean(img: &Image, labels: &Image, warp: bool) -> Option<[f32; 3]> {
+    if (img.width, img.height) != (labels.width, labels.height) {
+        return None;
+    }
+    let mut sum = [0.0f64; 3];
+    let mut n = 0usize;
+    for (p, l) in img.data.iter().zip(&labels.data) {
+        // Labels are stored as sRGB PNG: coverage 1 decodes to 1, 0 to 0.
+        let cov = if warp { l[0] } else { l[1] };
+        if cov >= PURE_COVERAGE {
+            (0..3).for_each(|k| sum[k] += p[k] as f64);
+            n += 1;
+        }
+    }
+    (n > 0).then(|| sum.map(|v| (v / n as f64) as f32))
+}
+
+/// Largest per-channel distance between the fit's and the input's family colours.
+fn colour_error(input: &Image, labels: &Image, res: &super::FitResult) -> Option<f32> {
+    let p = &res.cloth.pattern;
+    let c = res.render.width / p.n_a().max(1) as u32;
+    let mut worst = 0.0f32;
+    for weft in [false, true] {
+        let truth = family_mean(input, labels, !weft)?;
+        let fitted = yarn_mean(&res.render, p, c, weft, 0.25)?;
+        worst = (0..3).map(|k| (truth[k] - fitted[k]).abs()).fold(worst, f32::max);
+    }
+    Some(worst)
+}
+
+/// `target | fit | 4·|target − fit|`, each scaled to 128 px high.
+pub fn sheet_row(target: &Image, fit: &Image) -> Image {
+    let h = 128;
+    let w = (target.width * h / target.height.max(1)).max(1);
+    let (t, f) = (crate::math::resample::resample(target, w, h), crate::math::resample::resample(fit, w, h));
+    let err = Image::new(
+        w,
+        h,
+        t.data.iter().zip(&f.data).map(|(a, b)| [0, 1, 2].map(|k| (4.0 * (a[k] - b[k]).abs()).min(1.0))).collect(),
+    );
+    Image::hstack(&[&t, &f, &err], 2)
+}
+
+/// Fit and score one image of the folder.
+fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) -> Result<RenderCase> {
+    let meta: serde_json::Value = serde_json::from_str(&crate::io::read_text_capped(
+        &dir.join(format!("{name}.json")),
+        crate::io::MAX_PARAM_FILE_BYTES,
+    )?)
+    .with_context(|| format!("parsing {name}.json"))?;
+    let rows: Vec<Vec<u8>> = serde_json::from_value(meta["pattern"].clone())
+        .with_context(|| format!("{name}.json: `pattern` must be a matrix of 0/1"))?;
+    let truth = truth_from_renderer(&rows).with_context(|| format!("{name}.json"))?;
+    let exr = dir.join(format!("{name}.exr"));
+    let path = if exr.is_file() { exr } else { dir.join(format!("{name}.png")) };
+    let input = Image::load(&path, super::MIN_INPUT_SIDE)?;
+    let labels = Image::load(&dir.join(format!("{name}_labels.png")), 1).ok();
+    let t = Instant::now();
+    let mut case = RenderCase {
+        name: name.to_string(),
+        truth: truth.to_string(),
+        fit: "-".into(),
+        exact: false,
+        crop_psnr_db: 0.0,
+        colour_err: None,
+        secs: 0.0,
+        error: None,
+        row: None,
+    };
+    match fit(&input, opts) {
+        Ok(res) => {
+            case.secs = t.elapsed().as_secs_f64();
+            case.fit = res.params.cloth.pattern.to_string();
+            case.exact = res.params.cloth.pattern.equivalent(&truth);
+            case.crop_psnr_db = res.psnr_db;
+            case.colour_err = labels.as_ref().and_then(|l| colour_error(&input, l, &res));
+            case.row = Some(sheet_row(&res.target, &res.render));
+            if let Some(s) = save {
+                write_fit_outputs(&res, &s.join(name), true, opts.control.threads)?;
+            }
+        }
+        Err(e) => {
+            case.secs = t.elapsed().as_secs_f64();
+            case.error = Some(format!("{e:#}"));
+        }
+    }
+    Ok(case)
+}
+
+/// Fit every image of `dir` with `opts` (preparation on) and score it; `on_case` is called as
+/// each image is done. With `save`, each fit's outputs go to `save/NAME/`.
+pub fn eval_renders(
+    dir: &Path,
+    opts: &FitOptions,
+    save: Option<&PathBuf>,
+    on_case: &mut dyn FnMut(&RenderCase),
+) -> Result<RenderReport> {
+    let mut cases = Vec::new();
+    for name in image_stems(dir)? {
+        let case = eval_image(dir, &name, opts, save.map(|p| p.as_path()))?;
+        on_case(&case);
+        cases.push(case);
+    }
+    Ok(RenderReport { cases })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn renderer_truth_is_inverted_and_flipped_top_to_bottom() {
+        // A 3/1 twill in the renderer's convention (1 = warp on top, row 0 at the top).
+        let rows = vec![vec![1, 1, 1, 0], vec![0, 1, 1, 1], vec![1, 0, 1, 1], vec![1, 1, 0, 1]];
+        let p = truth_from_renderer(&rows).unwrap();
+        // Woven row 0 is the renderer's last row, inverted: weft over warp 1 only.
+        assert!(p.get(0, 1) && !p.get(0, 0) && !p.get(0, 2) && !p.get(0, 3));
+        assert!(p.get(3, 3) && !p.get(3, 0));
+        assert!(truth_from_renderer(&[vec![1, 0], vec![1]]).is_err());
+        assert!(truth_from_renderer(&[]).is_err());
+    }
+
+    #[test]
+    fn family_colours_come_from_pure_label_pixels() {
+        let img = Image::new(2, 2, vec![[0.2, 0.1, 0.0], [0.6, 0.5, 0.4], [0.9; 3], [0.4, 0.3, 0.2]]);
+        let labels = Image::new(2, 2, vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.5, 0.0], [1.0, 0.0, 0.0]]);
+        let warp = family_mean(&img, &labels, true).unwrap();
+        assert!((warp[0] - 0.3).abs() < 1e-6 && (warp[2] - 0.1).abs() < 1e-6);
+        assert_eq!(family_mean(&img, &labels, false).unwrap(), [0.6, 0.5, 0.4]);
+        assert!(family_mean(&img, &Image::new(1, 1, vec![[1.0; 3]]), true).is_none());
+    }
+
+    #[test]
+    fn a_folder_without_images_is_an_error() {
+        let dir = std::env::temp_dir().join(format!("woven_renders_empty_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let e = eval_renders(&dir, &FitOptions::fast(), None, &mut |_| {}).unwrap_err();
+        assert!(e.to_string().contains("holds no NAME.json"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
