@@ -64,7 +64,8 @@ impl RenderReport {
     /// The last line `woven eval --renders` prints.
     pub fn summary_line(&self) -> String {
         let n = self.cases.len();
-        let frac = |f: &dyn Fn(&RenderCase) -> bool| self.cases.iter().filter(|c| f(c)).count() as f32 / n.max(1) as f32;
+        let frac =
+            |f: &dyn Fn(&RenderCase) -> bool| self.cases.iter().filter(|c| f(c)).count() as f32 / n.max(1) as f32;
         let psnr: Vec<f32> = self.cases.iter().map(|c| c.crop_psnr_db).collect();
         let secs: Vec<f32> = self.cases.iter().map(|c| c.secs as f32).collect();
         let coloured: Vec<&RenderCase> = self.cases.iter().filter(|c| c.colour_err.is_some()).collect();
