@@ -1,0 +1,78 @@
+#!/usr/bin/env python3
+"""Run the fit on every render of one or more Mitsuba test-set folders (the user's path, no flags).
+
+For each `NAME.png` listed in `DIR/index.json` this runs
+
+    nice WOVEN fit DIR/NAME.png --out OUT/NAME
+
+under `timeout` (default 360 s), and writes `OUT/NAME/run.json` with the command, exit status, wall time and
+the last lines of the fit's output. A folder whose `run.json` already exists is skipped, so an interrupted
+run resumes. Only the Python standard library is needed.
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+
+def atomic_write_json(path, obj):
+    """Write `obj` as JSON to `path` through a temporary file + rename (no half-written file)."""
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1)
+    os.replace(tmp, path)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("dirs", nargs="+", help="test-set folders holding index.json and NAME.png")
+    ap.add_argument("--woven", required=True, help="the woven binary to run")
+    ap.add_argument("--out", required=True, help="output folder; one sub-folder per image")
+    ap.add_argument("--timeout", type=int, default=360, help="seconds before a fit is stopped (default 360)")
+    args = ap.parse_args()
+    if not os.access(args.woven, os.X_OK):
+        sys.exit(f"error: {args.woven} is not an executable file")
+    os.makedirs(args.out, exist_ok=True)
+    for d in args.dirs:
+        index_path = os.path.join(d, "index.json")
+        try:
+            with open(index_path) as f:
+                index = json.load(f)
+        except (OSError, json.JSONDecodeError) as e:
+            sys.exit(f"error: cannot read {index_path}: {e}")
+        for entry in index:
+            name = entry["name"]
+            img = os.path.join(d, name + ".png")
+            out = os.path.join(args.out, name)
+            run_json = os.path.join(out, "run.json")
+            if os.path.exists(run_json):
+                print(f"{name}: done already, skipped", flush=True)
+                continue
+            if not os.path.exists(img):
+                sys.exit(f"error: {img} listed in {index_path} does not exist")
+            cmd = ["nice", args.woven, "fit", img, "--out", out]
+            t0 = time.monotonic()
+            p = subprocess.run(["timeout", str(args.timeout)] + cmd, capture_output=True, text=True)
+            wall = time.monotonic() - t0
+            tail = (p.stdout + p.stderr).splitlines()[-30:]
+            os.makedirs(out, exist_ok=True)
+            with open(os.path.join(out, "stdout.log"), "w") as f:
+                f.write(p.stdout)
+                f.write(p.stderr)
+            atomic_write_json(run_json, {
+                "name": name,
+                "source_dir": os.path.abspath(d),
+                "command": " ".join(cmd),
+                "timeout_s": args.timeout,
+                "exit_code": p.returncode,
+                "timed_out": p.returncode == 124,
+                "wall_s": wall,
+                "output_tail": tail,
+            })
+            print(f"{name}: exit {p.returncode} in {wall:.1f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
