@@ -7,7 +7,8 @@ For each `NAME.png` listed in `DIR/index.json` this runs
 
 under `timeout` (default 360 s), and writes `OUT/NAME/run.json` with the command, exit status, wall time and
 the last lines of the fit's output. A folder whose `run.json` already exists is skipped, so an interrupted
-run resumes. Only the Python standard library is needed.
+run resumes; `--retry-timed-out` runs the timed-out ones again (keeping the earlier record as `run.N.json`).
+Only the Python standard library is needed.
 """
 import argparse
 import json
@@ -31,6 +32,9 @@ def main():
     ap.add_argument("--woven", required=True, help="the woven binary to run")
     ap.add_argument("--out", required=True, help="output folder; one sub-folder per image")
     ap.add_argument("--timeout", type=int, default=360, help="seconds before a fit is stopped (default 360)")
+    ap.add_argument("--retry-timed-out", action="store_true",
+                    help="run again the images whose last run timed out (their run.json is kept as "
+                         "run.N.json); for runs stopped only because other work shared the cores")
     args = ap.parse_args()
     if not os.access(args.woven, os.X_OK):
         sys.exit(f"error: {args.woven} is not an executable file")
@@ -48,8 +52,15 @@ def main():
             out = os.path.join(args.out, name)
             run_json = os.path.join(out, "run.json")
             if os.path.exists(run_json):
-                print(f"{name}: done already, skipped", flush=True)
-                continue
+                with open(run_json) as f:
+                    previous = json.load(f)
+                if not (args.retry_timed_out and previous.get("timed_out")):
+                    print(f"{name}: done already, skipped", flush=True)
+                    continue
+                attempt = 1
+                while os.path.exists(os.path.join(out, f"run.{attempt}.json")):
+                    attempt += 1
+                os.replace(run_json, os.path.join(out, f"run.{attempt}.json"))
             if not os.path.exists(img):
                 sys.exit(f"error: {img} listed in {index_path} does not exist")
             cmd = ["nice", args.woven, "fit", img, "--out", out]
