@@ -5,14 +5,16 @@ For each `NAME.png` listed in `DIR/index.json` this runs
 
     nice WOVEN fit DIR/NAME.png --out OUT/NAME
 
-under `timeout` (default 360 s), and writes `OUT/NAME/run.json` with the command, exit status, wall time and
-the last lines of the fit's output. A folder whose `run.json` already exists is skipped, so an interrupted
+under `timeout` (default 360 s wall clock) and optionally a CPU-time limit (`--cpu-limit`), and writes
+`OUT/NAME/run.json` with the command, exit status, wall and CPU time, the load average and the last lines of
+the fit's output. A folder whose `run.json` already exists is skipped, so an interrupted
 run resumes; `--retry-timed-out` runs the timed-out ones again (keeping the earlier record as `run.N.json`).
 Only the Python standard library is needed.
 """
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -31,7 +33,12 @@ def main():
     ap.add_argument("dirs", nargs="+", help="test-set folders holding index.json and NAME.png")
     ap.add_argument("--woven", required=True, help="the woven binary to run")
     ap.add_argument("--out", required=True, help="output folder; one sub-folder per image")
-    ap.add_argument("--timeout", type=int, default=360, help="seconds before a fit is stopped (default 360)")
+    ap.add_argument("--timeout", type=int, default=360,
+                    help="wall-clock seconds before a fit is stopped (default 360)")
+    ap.add_argument("--cpu-limit", type=int, default=0,
+                    help="CPU seconds (all threads) before a fit is stopped, 0 = none (default 0). On a machine "
+                         "whose cores are shared, a CPU-time limit stops the same work whatever the load: 720 "
+                         "CPU s is 6 minutes of two busy cores")
     ap.add_argument("--retry-timed-out", action="store_true",
                     help="run again the images whose last run timed out (their run.json is kept as "
                          "run.N.json); for runs stopped only because other work shared the cores")
@@ -54,7 +61,7 @@ def main():
             if os.path.exists(run_json):
                 with open(run_json) as f:
                     previous = json.load(f)
-                if not (args.retry_timed_out and previous.get("timed_out")):
+                if not (args.retry_timed_out and (previous.get("timed_out") or previous.get("cpu_limited"))):
                     print(f"{name}: done already, skipped", flush=True)
                     continue
                 attempt = 1
@@ -64,9 +71,20 @@ def main():
             if not os.path.exists(img):
                 sys.exit(f"error: {img} listed in {index_path} does not exist")
             cmd = ["nice", args.woven, "fit", img, "--out", out]
+            limit = None
+            if args.cpu_limit > 0:
+                # RLIMIT_CPU is inherited through `timeout` and `nice` (exec); the soft limit sends SIGXCPU,
+                # which ends the fit (exit 128 + 24 through `timeout`), the hard one SIGKILL 5 s later.
+                def limit():
+                    resource.setrlimit(resource.RLIMIT_CPU, (args.cpu_limit, args.cpu_limit + 5))
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.monotonic()
-            p = subprocess.run(["timeout", str(args.timeout)] + cmd, capture_output=True, text=True)
+            p = subprocess.run(["timeout", str(args.timeout)] + cmd, capture_output=True, text=True,
+                               preexec_fn=limit)
             wall = time.monotonic() - t0
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+            load = os.getloadavg()[0]
             tail = (p.stdout + p.stderr).splitlines()[-30:]
             os.makedirs(out, exist_ok=True)
             with open(os.path.join(out, "stdout.log"), "w") as f:
@@ -77,12 +95,16 @@ def main():
                 "source_dir": os.path.abspath(d),
                 "command": " ".join(cmd),
                 "timeout_s": args.timeout,
+                "cpu_limit_s": args.cpu_limit,
                 "exit_code": p.returncode,
-                "timed_out": p.returncode == 124,
+                "timed_out": p.returncode in (124, 137),
+                "cpu_limited": p.returncode in (128 + 24, -24, 128 + 9, -9) and args.cpu_limit > 0,
                 "wall_s": wall,
+                "cpu_s": cpu,
+                "load_avg_1min_at_end": load,
                 "output_tail": tail,
             })
-            print(f"{name}: exit {p.returncode} in {wall:.1f} s", flush=True)
+            print(f"{name}: exit {p.returncode} in {wall:.1f} s wall, {cpu:.1f} s CPU", flush=True)
 
 
 if __name__ == "__main__":
