@@ -4,12 +4,15 @@
     python baseline.py --fits OUT SET_DIR [SET_DIR ...] [--table table.md] [--sheet sheet.png]
 
 For every scene `NAME` of each `SET_DIR/index.json` whose fit is in `OUT/NAME/` (made by run_fits.py):
-- true pattern: `SET_DIR/NAME.json` → `pattern` (1 = warp on top), converted to woven's convention (1 = weft
-  on top) by inverting every cell; both reduced to the minimum repeat;
+- true pattern: `SET_DIR/NAME.json` → `pattern` (1 = warp on top, rows = wefts from the TOP of the image down),
+  converted to woven's convention by inverting every cell (woven: 1 = weft on top) AND reversing the row order
+  (woven lays weft i at world y = (i + 1/2) pitch with the image's up = +y, so its row 0 is the BOTTOM weft;
+  src/geometry/yarn.rs, src/render/camera.rs); both reduced to the minimum repeat;
 - fitted pattern: `OUT/NAME/fit.json` → `cloth.pattern`;
 - equal up to a cyclic shift, and (separate columns) up to inversion, transposition, and transposition with
-  inversion (woven's 90° rotation: wefts become warps), each also up to a shift; the smallest number of cells
-  that differ over all shifts when the sizes agree;
+  inversion (woven's 90° rotation: wefts become warps), each also up to a shift; equal to the inverted truth
+  WITHOUT the row reversal (a twill or satin of the opposite direction: what a fit that read the rows the other
+  way round would give); the smallest number of cells that differ over all shifts when the sizes agree;
 - crop PSNR (the `PSNR x dB` the fit prints: its fit of the one-repeat crop), the full-image PSNR of fit.png
   (the fit's re-render of the whole picture) against the input PNG (8-bit sRGB), the fit's own time and the
   wall time of the run.
@@ -71,9 +74,11 @@ def score(set_dir, name, fit_dir):
         meta = json.load(f)
     with open(run_path) as f:
         run = json.load(f)
-    truth = min_repeat(1 - np.array(meta["pattern"], dtype=int))
+    mitsuba = np.array(meta["pattern"], dtype=int)
+    truth = min_repeat(np.flipud(1 - mitsuba))
     row = {"name": name, "truth": to_text(truth), "truth_shape": truth.shape, "exit": run["exit_code"],
-           "wall_s": run["wall_s"], "timed_out": run["timed_out"], "meta": meta}
+           "wall_s": run["wall_s"], "cpu_s": run.get("cpu_s"),
+           "timed_out": run["timed_out"] or run.get("cpu_limited", False), "meta": meta}
     log = "\n".join(run["output_tail"])
     m = re.search(r"PSNR ([-0-9.]+) dB, ([0-9.]+) s", log)
     row["psnr"] = float(m.group(1)) if m else None
@@ -89,6 +94,7 @@ def score(set_dir, name, fit_dir):
     row["inverted"] = equal_up_to_shift(1 - truth, fit)
     row["transposed"] = equal_up_to_shift(truth.T, fit)
     row["rot90"] = equal_up_to_shift(1 - truth.T, fit)
+    row["unflipped"] = equal_up_to_shift(min_repeat(1 - mitsuba), fit)
     row["cells_off"] = shift_distance(truth, fit)
     fit_png = os.path.join(fit_dir, "fit.png")
     if os.path.exists(fit_png):
@@ -103,19 +109,20 @@ def yes(v):
 def table(rows):
     """Markdown table of the scored rows."""
     out = ["| image | true (woven: 1 = weft on top) | fitted | = up to shift | inverted | transposed | "
-           "transposed+inverted | cells off | crop PSNR dB | full PSNR dB | fit s | wall s |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "transposed+inverted | rows not reversed | cells off | crop PSNR dB | full PSNR dB | fit s | CPU s | wall s |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        cpu = "—" if r.get("cpu_s") is None else f"{r['cpu_s']:.0f}"
         if r["fit"] is None:
-            why = "timed out (360 s)" if r["timed_out"] else f"exit {r['exit']}"
-            out.append(f"| {r['name']} | `{r['truth']}` | {why} | — | — | — | — | — | — | — | — | {r['wall_s']:.0f} |")
+            why = "stopped (time limit)" if r["timed_out"] else f"exit {r['exit']}"
+            out.append(f"| {r['name']} | `{r['truth']}` | {why} | — | — | — | — | — | — | — | — | — | {cpu} | {r['wall_s']:.0f} |")
             continue
         off = "size differs" if r["cells_off"] is None else str(r["cells_off"])
         psnr = "—" if r["psnr"] is None else f"{r['psnr']:.2f}"
         fit_s = "—" if r["fit_s"] is None else f"{r['fit_s']:.0f}"
         full = "—" if r.get("full_psnr") is None else f"{r['full_psnr']:.2f}"
         out.append(f"| {r['name']} | `{r['truth']}` | `{r['fit']}` | {yes(r['shift'])} | {yes(r['inverted'])} | "
-                   f"{yes(r['transposed'])} | {yes(r['rot90'])} | {off} | {psnr} | {full} | {fit_s} | {r['wall_s']:.0f} |")
+                   f"{yes(r['transposed'])} | {yes(r['rot90'])} | {yes(r['unflipped'])} | {off} | {psnr} | {full} | {fit_s} | {cpu} | {r['wall_s']:.0f} |")
     return "\n".join(out)
 
 
