@@ -142,6 +142,10 @@ def summary(rows, label):
             f"{np.mean(fit_s) if fit_s else float('nan'):.0f} s, wall mean {np.mean([r['wall_s'] for r in rows]):.0f} s")
 
 
+COMPARE_HEADER = 28
+"""Height in pixels of the text header of the fit's compare.png."""
+
+
 def srgb8(path):
     """An 8-bit RGB image as a float array."""
     from PIL import Image
@@ -198,14 +202,16 @@ def sheet(rows, set_of, fits, path, cell=128):
                 err = np.clip(np.abs(srgb8(src_path) - srgb8(fit_png)) * 2, 0, 255).astype(np.uint8)
                 img.paste(Image.fromarray(err).resize((cell, cell), Image.BILINEAR), (2 * cell, y0 + label_h))
         if os.path.exists(compare):
-            # compare.png = a text header, then crop | fit of the crop | error panels, each `side` px square
-            # and 4 px apart.
+            # compare.png (src/fit): a 28 px text header, then crop | fit of the crop | error panels of the
+            # crop's aspect, 4 px apart. Each panel is fitted into the cell keeping its aspect.
             cmp_img = Image.open(compare).convert("RGB")
-            side = (cmp_img.width - 8) // 3
-            top = cmp_img.height - side
+            pw, ph = (cmp_img.width - 8) // 3, cmp_img.height - COMPARE_HEADER
+            scale = cell / max(pw, ph)
+            w, h = max(1, round(pw * scale)), max(1, round(ph * scale))
             for p in range(2):
-                panel = cmp_img.crop((p * (side + 4), top, p * (side + 4) + side, cmp_img.height))
-                img.paste(panel.resize((cell, cell), Image.BILINEAR), ((3 + p) * cell, y0 + label_h))
+                panel = cmp_img.crop((p * (pw + 4), COMPARE_HEADER, p * (pw + 4) + pw, cmp_img.height))
+                img.paste(panel.resize((w, h), Image.BILINEAR),
+                          ((3 + p) * cell + (cell - w) // 2, y0 + label_h + (cell - h) // 2))
         status = "no fit" if r["fit"] is None else ("pattern OK" if r["shift"] else "pattern WRONG")
         psnr = "" if r.get("psnr") is None else f"crop {r['psnr']:.1f} dB"
         fpsnr = "" if r.get("full_psnr") is None else f"full {r['full_psnr']:.1f} dB"
