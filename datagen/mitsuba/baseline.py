@@ -83,6 +83,12 @@ def score(set_dir, name, fit_dir):
     m = re.search(r"PSNR ([-0-9.]+) dB, ([0-9.]+) s", log)
     row["psnr"] = float(m.group(1)) if m else None
     row["fit_s"] = float(m.group(2)) if m else None
+    # The grid the preparation found: the fit's own prep.json, or that of `run_fits.py --prep-stopped`.
+    for prep_path in (os.path.join(fit_dir, "prep.json"), os.path.join(fit_dir, "prep", "prep.json")):
+        if os.path.exists(prep_path):
+            with open(prep_path) as f:
+                row["prep"] = json.load(f)
+            break
     fit_json = os.path.join(fit_dir, "fit.json")
     if run["exit_code"] != 0 or not os.path.exists(fit_json):
         row["fit"] = None
@@ -123,6 +129,29 @@ def table(rows):
         full = "—" if r.get("full_psnr") is None else f"{r['full_psnr']:.2f}"
         out.append(f"| {r['name']} | `{r['truth']}` | `{r['fit']}` | {yes(r['shift'])} | {yes(r['inverted'])} | "
                    f"{yes(r['transposed'])} | {yes(r['rot90'])} | {yes(r['unflipped'])} | {off} | {psnr} | {full} | {fit_s} | {cpu} | {r['wall_s']:.0f} |")
+    return "\n".join(out)
+
+
+def prep_table(rows):
+    """Markdown table: what the preparation found against the truth (rotation, yarn pitch, repeat)."""
+    out = ["| image | rotation true / found ° | pitch x true / found px | pitch y true / found px | "
+           "repeat true (wefts×warps) / found n_e×n_a | crop px |",
+           "|---|---|---|---|---|---|"]
+    for r in rows:
+        m = r["meta"]
+        width, height = m["image"]["width"], m["image"]["height"]
+        true_px = width / m["warp"]["count_visible"]
+        true_py = height / m["weft"]["count_visible"]
+        rot = m.get("rotation_deg", 0.0)
+        truth = f"{m['pattern_rows']}×{m['pattern_cols']}"
+        p = r.get("prep")
+        if p is None:
+            out.append(f"| {r['name']} | {rot:.2f} / — | {true_px:.1f} / — | {true_py:.1f} / — | {truth} / — | — |")
+            continue
+        c = p["crop"]
+        out.append(f"| {r['name']} | {rot:.2f} / {p['angle_deg']:.2f} | {true_px:.1f} / {p['pitch_x']:.1f} | "
+                   f"{true_py:.1f} / {p['pitch_y']:.1f} | {truth} / {p['n_e']}×{p['n_a']} | "
+                   f"{c['w']}×{c['h']} |")
     return "\n".join(out)
 
 
@@ -244,7 +273,8 @@ def main():
         groups.append((d, rows))
     text = []
     for d, rows in groups:
-        text.append(f"### {d}\n\n{summary(rows, os.path.basename(os.path.normpath(d)))}\n\n{table(rows)}\n")
+        text.append(f"### {d}\n\n{summary(rows, os.path.basename(os.path.normpath(d)))}\n\n{table(rows)}\n\n"
+                    f"Preparation (grid and crop):\n\n{prep_table(rows)}\n")
     out = "\n".join(text)
     if args.table:
         tmp = args.table + ".tmp"

@@ -39,6 +39,9 @@ def main():
                     help="CPU seconds (all threads) before a fit is stopped, 0 = none (default 0). On a machine "
                          "whose cores are shared, a CPU-time limit stops the same work whatever the load: 720 "
                          "CPU s is 6 minutes of two busy cores")
+    ap.add_argument("--prep-stopped", action="store_true",
+                    help="instead of fitting, run `WOVEN prep IMG --out OUT/NAME/prep` for every image whose fit "
+                         "ended without a result (to see which grid and angle the fit would have started from)")
     ap.add_argument("--retry-timed-out", action="store_true",
                     help="run again the images whose last run timed out (their run.json is kept as "
                          "run.N.json); for runs stopped only because other work shared the cores")
@@ -58,6 +61,17 @@ def main():
             img = os.path.join(d, name + ".png")
             out = os.path.join(args.out, name)
             run_json = os.path.join(out, "run.json")
+            if args.prep_stopped:
+                if not os.path.exists(run_json):
+                    continue
+                with open(run_json) as f:
+                    if json.load(f)["exit_code"] == 0:
+                        continue
+                prep_out = os.path.join(out, "prep")
+                p = subprocess.run(["nice", args.woven, "prep", img, "--out", prep_out], capture_output=True,
+                                   text=True)
+                print(f"{name}: prep exit {p.returncode}: {(p.stdout + p.stderr).strip()[-300:]}", flush=True)
+                continue
             if os.path.exists(run_json):
                 with open(run_json) as f:
                     previous = json.load(f)
