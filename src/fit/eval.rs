@@ -138,7 +138,12 @@ pub struct EvalCase {
 
 /// Fit `opts.count` random targets and return the report; `on_case(i, truth, case)` is called as
 /// each target is done (the command line prints its line).
+///
+/// Errors: `count` 0 (a report of no targets would print NaN means), or failing to write `save`.
 pub fn eval(opts: &EvalOptions, on_case: &mut dyn FnMut(usize, &ClothParams, &EvalCase)) -> Result<EvalReport> {
+    if opts.count == 0 {
+        anyhow::bail!("--count must be at least 1 (an evaluation of no targets has no figures)");
+    }
     let mut rng = StdRng::seed_from_u64(opts.seed);
     let mut cases = Vec::new();
     for i in 0..opts.count {
@@ -415,6 +420,12 @@ mod tests {
         let case = &rep.cases[0];
         assert!(case.error.as_deref().is_some_and(|e| e.contains("at least") || e.contains("px_per_cell")), "{case:?}");
         assert!(!case.exact && case.errors.iter().all(|e| *e == 1.0));
+    }
+
+    #[test]
+    fn an_evaluation_of_no_targets_is_an_error() {
+        let e = eval(&EvalOptions { count: 0, ..EvalOptions::default() }, &mut |_, _, _| {}).unwrap_err();
+        assert!(e.to_string().contains("--count must be at least 1"), "{e}");
     }
 
     #[test]
