@@ -222,9 +222,9 @@ fn an_unwritable_out_or_model_is_refused_before_fitting() {
     assert!(names(d.path()).iter().all(|n| !n.contains(".tmp-")), "temporaries left: {:?}", names(d.path()));
 }
 
-/// Send SIGINT (Ctrl-C) to `woven fit` once it says it is fitting, and wait for it.
+/// Send SIGINT (Ctrl-C) `times` times to `woven fit` once it says it is fitting, and wait for it.
 #[cfg(unix)]
-fn interrupted_fit(args: &[&str]) -> Output {
+fn interrupted_fit(args: &[&str], times: usize) -> Output {
     let mut child = spawn(args);
     let stderr = child.stderr.take().expect("stderr");
     let (tx, rx) = std::sync::mpsc::channel();
@@ -246,8 +246,11 @@ fn interrupted_fit(args: &[&str]) -> Output {
     rx.recv_timeout(Duration::from_secs(60)).expect("woven fit never started fitting");
     // Let it run into the joint loop before it is stopped.
     std::thread::sleep(Duration::from_millis(1500));
-    let sent = Command::new("kill").args(["-INT", &child.id().to_string()]).status().expect("kill");
-    assert!(sent.success());
+    for _ in 0..times {
+        let sent = Command::new("kill").args(["-INT", &child.id().to_string()]).status().expect("kill");
+        assert!(sent.success());
+        std::thread::sleep(Duration::from_millis(100));
+    }
     let mut out = wait_limited(child, Duration::from_secs(120), "the interrupted fit");
     out.stderr = reader.join().expect("stderr reader").into_bytes();
     out
@@ -263,7 +266,7 @@ fn ctrl_c_never_replaces_a_complete_fit() {
     let long = [&["fit", s(&exr), "--out", s(&out)][..], &endless()].concat();
 
     // Stopped with no earlier fit: the best so far goes to OUT.partial; OUT is not created.
-    let o = interrupted_fit(&long);
+    let o = interrupted_fit(&long, 1);
     let err = String::from_utf8_lossy(&o.stderr).to_string();
     assert!(o.status.success(), "{err}");
     assert!(err.contains("stopped early") && err.contains("out.partial") && err.contains("was not written"), "{err}");
@@ -285,7 +288,7 @@ fn ctrl_c_never_replaces_a_complete_fit() {
 
     // Stopped with a complete fit in OUT: OUT stays byte for byte; the early stop replaces OUT.partial.
     std::fs::write(partial.join("marker"), b"previous partial").unwrap();
-    let o = interrupted_fit(&long);
+    let o = interrupted_fit(&long, 1);
     let err = String::from_utf8_lossy(&o.stderr).to_string();
     assert!(o.status.success(), "{err}");
     assert!(err.contains("stopped early") && err.contains("keeps the earlier complete fit"), "{err}");
@@ -295,5 +298,15 @@ fn ctrl_c_never_replaces_a_complete_fit() {
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("(stopped early: best so far)") && stdout.contains("out.partial"), "{stdout}");
     // No staging or set-aside folder is left.
+    assert_eq!(names(d.path()), ["out", "out.partial", "plain.exr", "plain.json", "plain.png"]);
+
+    // A second Ctrl-C aborts without writing: both folders stay as they were, no temporary is left.
+    let partial_json = std::fs::read(partial.join("fit.json")).unwrap();
+    let o = interrupted_fit(&long, 2);
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert_eq!(o.status.code(), Some(130), "{err}");
+    assert!(err.contains("aborted: nothing written"), "{err}");
+    assert_eq!(std::fs::read(out.join("log.jsonl")).unwrap(), log);
+    assert_eq!(std::fs::read(partial.join("fit.json")).unwrap(), partial_json);
     assert_eq!(names(d.path()), ["out", "out.partial", "plain.exr", "plain.json", "plain.png"]);
 }

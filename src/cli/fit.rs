@@ -189,8 +189,19 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     opts.control.progress = beat.clone();
     let stop = opts.control.stop.clone();
     let flag = stop.clone();
-    // Only one handler per process; a second fit in the same process keeps the first handler.
-    let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    let tmp = staging.dir().to_path_buf();
+    // The first Ctrl-C stops the fit, which then writes the best state so far (seconds to minutes
+    // on a big photo); a second one aborts at once, removing the staging folder so that nothing
+    // half-written is left. Only one handler per process; a second fit in the same process keeps
+    // the first handler.
+    let _ = ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            eprintln!("aborted: nothing written ({} removed)", tmp.display());
+            let _ = std::fs::remove_dir_all(&tmp);
+            std::process::exit(130);
+        }
+        eprintln!("stopping: the best state so far will be written (Ctrl-C again aborts without writing)");
+    });
     eprintln!(
         "fitting {} ({}×{} px): preparation, pre-estimation, joint fit, finish; Ctrl-C stops early and keeps the best state so far",
         args.image.display(),
