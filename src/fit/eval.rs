@@ -320,7 +320,7 @@ impl PhotoView {
         } else {
             img
         };
-        let mut rng = StdRng::seed_from_u64(seed ^ 0x6e6f_6973_65);
+        let mut rng = StdRng::seed_from_u64(seed ^ 0x006e_6f69_7365);
         let noise = Normal::new(0.0f32, self.noise.max(1e-9)).unwrap_or_else(|_| Normal::new(0.0, 1e-9).unwrap());
         let data = img.data.iter().map(|p| p.map(|v| (v * self.exposure + noise.sample(&mut rng)).max(0.0))).collect();
         Image::new(img.width, img.height, data)
