@@ -252,9 +252,15 @@ mod tests {
         // A 3/1 twill in the renderer's convention (1 = warp on top, row 0 at the top).
         let rows = vec![vec![1, 1, 1, 0], vec![0, 1, 1, 1], vec![1, 0, 1, 1], vec![1, 1, 0, 1]];
         let p = truth_from_renderer(&rows).unwrap();
-        // Woven row 0 is the renderer's last row, inverted: weft over warp 1 only.
-        assert!(p.get(0, 1) && !p.get(0, 0) && !p.get(0, 2) && !p.get(0, 3));
-        assert!(p.get(3, 3) && !p.get(3, 0));
+        // Rows reversed (woven's row 0 is the bottom weft) and inverted (1 = weft over warp).
+        let b = |r: &[u8]| r.iter().map(|&v| v == 1).collect::<Vec<bool>>();
+        let want =
+            WeavePattern::from_rows(&[b(&[0, 0, 1, 0]), b(&[0, 1, 0, 0]), b(&[1, 0, 0, 0]), b(&[0, 0, 0, 1])]).unwrap();
+        assert!(p.equivalent(&want), "{p}");
+        // Inverted only (rows kept) is the twill running the other way: not the same cloth.
+        let mirrored =
+            WeavePattern::from_rows(&[b(&[0, 0, 0, 1]), b(&[1, 0, 0, 0]), b(&[0, 1, 0, 0]), b(&[0, 0, 1, 0])]).unwrap();
+        assert!(!p.equivalent(&mirrored));
         assert!(truth_from_renderer(&[vec![1, 0], vec![1]]).is_err());
         assert!(truth_from_renderer(&[]).is_err());
     }
