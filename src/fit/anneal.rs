@@ -138,6 +138,17 @@ mod tests {
     }
 
     #[test]
+    fn continuous_ranges_are_the_appearance_then_both_radii() {
+        let r = continuous_ranges();
+        assert_eq!(r.len(), N_APPEARANCE + 2);
+        assert_eq!((r[0].name, r[0].min, r[0].max), ("m_r", 0.2, 0.8));
+        assert_eq!(
+            r[N_APPEARANCE..].iter().map(|p| (p.name, p.min, p.max)).collect::<Vec<_>>(),
+            [("r_e", 1.0, 5.0), ("r_a", 1.0, 5.0)]
+        );
+    }
+
+    #[test]
     fn adam_steps_against_the_gradient_on_masked_coordinates_only() {
         let mut adam = Adam::new(3);
         let mut x = [1.0f32, 1.0, 1.0];

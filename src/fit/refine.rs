@@ -98,8 +98,8 @@ const LM_MAX_STEP: f64 = 0.25;
 /// of `cloth`), in units of each Table-1 range: `(H + μ(diag H + ε)) δ = −g` with the Gauss–Newton
 /// `H = 2JᵀJ/n` of the exact derivatives, steps projected into the ranges (where the barrier is
 /// zero), `μ` divided by 3 after a step that lowers the loss and multiplied by 5 after one that
-/// does not ([`lm::minimize`] with its default schedule). Each iteration costs one derivative
-/// shading, no re-trace. Leaves the best appearance in `cloth` and returns its loss (MSE + barrier).
+/// does not ([`lm::minimize`]: its default `μ` schedule, steps of at most [`LM_MAX_STEP`], the
+/// damping floor [`LM_DAMPING_FLOOR`]). Each iteration costs one derivative shading, no re-trace. Leaves the best appearance in `cloth` and returns its loss (MSE + barrier).
 pub(super) fn lm_appearance(
     ev: &Evaluator,
     cache: &crate::render::PathCache,
@@ -116,10 +116,11 @@ pub(super) fn lm_appearance(
     out.loss as f32
 }
 
-/// Floor of the damping term `ε` added to the scaled Hessian's diagonal: `ε = max(1e-6·max diag,
-/// 1e-6·1e-12)`, which equals `1e-6·max(max diag, 1e-12)` bit for bit (rounding is monotone), the
-/// polish's damping since it was written; `LmOptions`'s default floor (1e-12) would give other
-/// steps where the scaled Hessian is nearly zero (an all-clipped render).
+/// Floor of the damping term `ε` added to the scaled Hessian's diagonal. [`lm::minimize`] takes
+/// `ε = max(1e-6·max diag, floor)`; with this floor that is `1e-6·max(max diag, 1e-12)` bit for
+/// bit (rounding is monotone), the polish's damping since it was written. `LmOptions`'s default
+/// floor (1e-12) would change the steps wherever the largest scaled diagonal is below 1e-6 (a
+/// render that is nearly all clipped).
 const LM_DAMPING_FLOOR: f64 = 1e-6 * 1e-12;
 
 /// The appearance at fixed geometry as a Levenberg–Marquardt problem: loss MSE + barrier, the
@@ -298,6 +299,16 @@ mod tests {
         // The body reflection colours, which every lit pixel shows, come back within 0.05.
         for k in 0..3 {
             assert!((cloth.appearance.r_b_e[k] - truth.appearance.r_b_e[k]).abs() < 0.05, "{:?}", cloth.appearance);
+        }
+    }
+
+    #[test]
+    fn the_damping_floor_keeps_the_polish_damping_bit_for_bit() {
+        let rel = LmOptions::default().damping_rel;
+        assert_eq!(rel, 1e-6);
+        for d in [0.0, 1e-300, 3e-13, 1e-12, 1.0000001e-12, 7e-9, 5e-7, 1e-6, 0.37, 2.5e4, f64::INFINITY] {
+            let polish = 1e-6 * f64::max(d, 1e-12);
+            assert_eq!((rel * d).max(LM_DAMPING_FLOOR).to_bits(), polish.to_bits(), "diag {d:e}");
         }
     }
 
