@@ -42,6 +42,9 @@ enum Cmd {
     Export(cli::export::ExportArgs),
     /// Render the synthetic training set (resumable, shardable, deterministic).
     Generate(cli::datagen::GenerateArgs),
+    /// Merge shard folders of `woven generate --shard i/K` (e.g. from a Slurm array or a Kubernetes
+    /// Indexed Job) into one dataset, checking the shards' manifests.
+    Merge(cli::datagen::MergeArgs),
     /// Train the pre-estimator network on a dataset from `woven generate`.
     Train(cli::net::TrainArgs),
     /// Predict pattern class and parameters of an image with the pre-estimator.
@@ -66,6 +69,7 @@ fn main() -> Result<()> {
         Cmd::Prep(a) => cli::prep::run(&a),
         Cmd::Export(a) => cli::export::run(&a),
         Cmd::Generate(a) => cli::datagen::run(&a),
+        Cmd::Merge(a) => cli::datagen::run_merge(&a),
         Cmd::Train(a) => cli::net::run_train(&a),
         Cmd::Predict(a) => cli::net::run_predict(&a),
         Cmd::Bench(a) => cli::bench::run_bench(&a),

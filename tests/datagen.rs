@@ -43,7 +43,8 @@ fn hashes(dir: &Path) -> BTreeMap<String, String> {
                 walk(base, &p, out);
             } else {
                 let rel = p.strip_prefix(base).unwrap().to_string_lossy().to_string();
-                if rel != "runs.jsonl" {
+                // The run log and the shard manifests record how the set was made, not what it is.
+                if rel != "runs.jsonl" && !rel.starts_with("shards") {
                     let h: String =
                         Sha256::digest(std::fs::read(&p).unwrap()).iter().map(|b| format!("{b:02x}")).collect();
                     out.insert(rel, h);
@@ -419,4 +420,144 @@ fn command_entry_point() {
     assert!(!out.status.success());
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(e.contains("patterns.random_share"), "{e}");
+}
+
+/// Render shard `i/K` of [`tiny`] into its own folder (as one cluster task would).
+fn shard_dir(i: usize, k: usize) -> tempfile::TempDir {
+    let d = tempfile::tempdir().unwrap();
+    let mut o = opts(d.path(), 1);
+    o.shard = (i, k);
+    generate(&o, &NoProgress).unwrap();
+    d
+}
+
+#[test]
+fn merged_shard_folders_equal_one_run_and_bad_shards_are_refused() {
+    use woven::datagen::merge;
+    let (_a, ha) = reference();
+    let parts: Vec<tempfile::TempDir> = (0..3).map(|i| shard_dir(i, 3)).collect();
+    let dirs: Vec<PathBuf> = parts.iter().map(|d| d.path().to_path_buf()).collect();
+    assert!(dirs[1].join("shards/shard-1-of-3.json").is_file());
+    let out = tempfile::tempdir().unwrap();
+    let m = out.path().join("train");
+    let s = merge(&dirs, &m, &NoProgress).unwrap();
+    assert_eq!((s.count, s.shards, s.copied), (10, 3, 20));
+    assert_eq!(hashes(&m), ha, "the merge must equal a one-machine run byte for byte");
+    // Merging again (a retried merge step) copies nothing; a duplicated identical shard is fine.
+    let twice = [dirs.clone(), vec![dirs[0].clone()]].concat();
+    assert_eq!(merge(&twice, &m, &NoProgress).unwrap().copied, 0);
+
+    // A missing shard is named with the command that makes it.
+    let e = format!("{:#}", merge(&dirs[..2], &out.path().join("x"), &NoProgress).unwrap_err());
+    assert!(e.contains("shards missing: 2/3") && e.contains("--shard I/3"), "{e}");
+    // A folder that is not a finished shard.
+    let e = format!("{:#}", merge(&[out.path().to_path_buf()], &out.path().join("y"), &NoProgress).unwrap_err());
+    assert!(e.contains("no shard manifest"), "{e}");
+    // Shards of another split, and of another dataset.
+    let other_k = shard_dir(0, 2);
+    let e = format!(
+        "{:#}",
+        merge(&[dirs[0].clone(), other_k.path().into()], &out.path().join("z"), &NoProgress).unwrap_err()
+    );
+    assert!(e.contains("split into 3"), "{e}");
+    let other = tempfile::tempdir().unwrap();
+    let mut o = opts(other.path(), 1);
+    o.seed = Some(8);
+    o.shard = (2, 3);
+    generate(&o, &NoProgress).unwrap();
+    let mixed = vec![dirs[0].clone(), dirs[1].clone(), other.path().into()];
+    let e = format!("{:#}", merge(&mixed, &out.path().join("w"), &NoProgress).unwrap_err());
+    assert!(e.contains("different datasets"), "{e}");
+    // Into a folder that holds another dataset.
+    let e = format!("{:#}", merge(&dirs, other.path(), &NoProgress).unwrap_err());
+    assert!(e.contains("holds another dataset"), "{e}");
+    // A file changed after its shard finished (a truncated copy) is caught before it is used.
+    let png = image_path(&dirs[1], 4);
+    let bytes = std::fs::read(&png).unwrap();
+    std::fs::write(&png, &bytes[..bytes.len() / 2]).unwrap();
+    let fresh = out.path().join("v");
+    let e = format!("{:#}", merge(&dirs, &fresh, &NoProgress).unwrap_err());
+    assert!(e.contains("000004.png") && e.contains("does not match its shard manifest"), "{e}");
+    assert!(!fresh.join("manifest.json").exists(), "no manifest for an incomplete merge");
+}
+
+/// `datagen/cluster/shard.sh` as a Slurm array task and as a Kubernetes Indexed Job pod: the
+/// scheduler's index is the shard index; K processes run at once; `woven merge` of their folders
+/// equals a one-machine run.
+#[test]
+fn cluster_array_tasks_map_their_index_to_the_shard_and_merge_to_one_run() {
+    let (_a, ha) = reference();
+    let work = tempfile::tempdir().unwrap();
+    let recipe = work.path().join("tiny.toml");
+    std::fs::write(&recipe, tiny().to_toml()).unwrap();
+    let script = repo().join("datagen/cluster/shard.sh");
+    let bin = env!("CARGO_BIN_EXE_woven");
+    let k = 3;
+    for (scheduler, index_var, count_var) in
+        [("slurm", "SLURM_ARRAY_TASK_ID", "SLURM_ARRAY_TASK_COUNT"), ("k8s", "JOB_COMPLETION_INDEX", "WOVEN_SHARDS")]
+    {
+        let data = work.path().join(scheduler);
+        let tasks: Vec<std::process::Child> = (0..k)
+            .map(|i| {
+                std::process::Command::new("bash")
+                    .arg(&script)
+                    .args(["--recipe", recipe.to_str().unwrap(), "--threads", "1"])
+                    .env_remove("WOVEN_SHARD_INDEX")
+                    .env_remove("WOVEN_SHARDS")
+                    .env_remove("SLURM_ARRAY_TASK_ID")
+                    .env_remove("JOB_COMPLETION_INDEX")
+                    .env(index_var, i.to_string())
+                    .env(count_var, k.to_string())
+                    .env("WOVEN", bin)
+                    .env("WOVEN_DATA", &data)
+                    .stderr(std::process::Stdio::null())
+                    .spawn()
+                    .unwrap()
+            })
+            .collect();
+        for mut t in tasks {
+            assert!(t.wait().unwrap().success(), "{scheduler} task failed");
+        }
+        for i in 0..k {
+            assert!(data.join(format!("shard-{i}/shards/shard-{i}-of-{k}.json")).is_file(), "{scheduler} shard {i}");
+        }
+        let out = work.path().join(format!("{scheduler}-train"));
+        let st = std::process::Command::new(bin)
+            .arg("merge")
+            .arg("--out")
+            .arg(&out)
+            .args((0..k).map(|i| data.join(format!("shard-{i}"))))
+            .output()
+            .unwrap();
+        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        assert_eq!(hashes(&out), ha, "{scheduler}: merged set differs from a one-machine run");
+    }
+    // Without an index the script refuses to guess; an index past K is refused too.
+    let run = |envs: &[(&str, &str)]| {
+        let mut c = std::process::Command::new("bash");
+        c.arg(&script).env("WOVEN", bin).env("WOVEN_DATA", work.path());
+        for v in [
+            "WOVEN_SHARD_INDEX",
+            "WOVEN_SHARDS",
+            "SLURM_ARRAY_TASK_ID",
+            "SLURM_ARRAY_TASK_COUNT",
+            "JOB_COMPLETION_INDEX",
+        ] {
+            c.env_remove(v);
+        }
+        c.envs(envs.iter().copied()).output().unwrap()
+    };
+    let o = run(&[]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no shard index"));
+    let o = run(&[("JOB_COMPLETION_INDEX", "3"), ("WOVEN_SHARDS", "3")]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("not in 0..3"));
+    // The job files name the script and agree on K.
+    let yaml = std::fs::read_to_string(repo().join("datagen/cluster/k8s-indexed-job.yaml")).unwrap();
+    assert!(yaml.contains("completionMode: Indexed") && yaml.contains("shard.sh"));
+    let completions = yaml.lines().find_map(|l| l.trim().strip_prefix("completions:")).unwrap().trim().to_string();
+    assert!(yaml.contains(&format!("value: \"{completions}\"")), "WOVEN_SHARDS must equal completions");
+    let sbatch = std::fs::read_to_string(repo().join("datagen/cluster/slurm.sbatch")).unwrap();
+    assert!(sbatch.contains("#SBATCH --array=0-") && sbatch.contains("shard.sh"));
 }

@@ -39,6 +39,31 @@ pub struct GenerateArgs {
     pub threads: Option<usize>,
 }
 
+/// Arguments of `woven merge`.
+#[derive(Args, Clone, Debug)]
+pub struct MergeArgs {
+    /// Output folder of the merged set (new, one of the shard folders, or an earlier merge).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The shard folders (each the --out of a finished `woven generate --shard i/K`).
+    #[arg(required = true)]
+    pub shards: Vec<PathBuf>,
+}
+
+/// `woven merge`.
+pub fn run_merge(args: &MergeArgs) -> Result<()> {
+    let s = woven::datagen::merge(&args.shards, &args.out, &IndicatifProgress::new(true))
+        .with_context(|| format!("merging {} shard folders into {}", args.shards.len(), args.out.display()))?;
+    eprintln!(
+        "merge: {} images from {} shards into {} ({} files copied); labels.jsonl, manifest.json, preview.png written",
+        s.count,
+        s.shards,
+        args.out.display(),
+        s.copied
+    );
+    Ok(())
+}
+
 /// Parse `i/K` with `0 <= i < K`.
 pub fn parse_shard(s: &str) -> Result<(usize, usize), String> {
     let (a, b) = s.split_once('/').ok_or_else(|| format!("shard `{s}`: expected i/K, e.g. 0/4"))?;

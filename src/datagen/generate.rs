@@ -170,7 +170,7 @@ pub struct Manifest {
 /// `dataset.json`: what makes two runs the same dataset (`image_size` is informative: it is part
 /// of the recipe hash, and kept apart so a mismatch can be explained; absent in older sets).
 #[derive(Serialize, Deserialize)]
-struct Identity {
+pub(crate) struct Identity {
     seed: u64,
     recipe_sha256_without_count: String,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -178,12 +178,12 @@ struct Identity {
 }
 
 impl Identity {
-    fn same_dataset(&self, other: &Identity) -> bool {
+    pub(crate) fn same_dataset(&self, other: &Identity) -> bool {
         self.seed == other.seed && self.recipe_sha256_without_count == other.recipe_sha256_without_count
     }
 }
 
-fn identity(recipe: &Recipe) -> Identity {
+pub(crate) fn identity(recipe: &Recipe) -> Identity {
     let mut r = recipe.clone();
     r.count = 0;
     Identity {
@@ -451,6 +451,10 @@ pub fn generate(opts: &GenerateOptions, progress: &dyn Progress) -> Result<Summa
     append_line(&dir.join("runs.jsonl"), &run_line.to_string())?;
     if rendered < n_todo {
         return Err(anyhow!(Interrupted { rendered, remaining: n_todo - rendered }));
+    }
+    if shard_k > 1 {
+        // For `woven merge` of shards rendered on machines without a shared folder.
+        super::merge::write_shard_manifest(dir, &recipe, opts.shard, opts.exr)?;
     }
     let (present, complete) = finalize(dir, &recipe)?;
     Ok(Summary { count: recipe.count, shard: opts.shard, rendered, skipped, present, complete, wall_s, images_per_s })

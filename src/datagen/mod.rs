@@ -5,10 +5,12 @@
 //! [`GenerateOptions::cancel`], which the `woven` binary sets on Ctrl-C).
 
 pub mod generate;
+pub mod merge;
 pub mod recipe;
 pub mod sample;
 pub mod sheet;
 
 pub use generate::{generate, GenerateOptions, Interrupted, Manifest, Summary};
+pub use merge::{merge, MergeSummary, ShardManifest};
 pub use recipe::{Dist, PatternClass, Prior, Recipe, Span};
 pub use sample::{target_names, Label, NoiseSpec, Sample};
