@@ -229,10 +229,16 @@ impl TileGeometry {
             if ta > tb {
                 continue;
             }
-            // Capsule k covers s ∈ [k·ds − r, (k+1)·ds + r].
+            // A point at lateral distance δ from the centre line meets capsule k only where
+            // s ∈ [k·ds − √(r² − δ²), (k+1)·ds + √(r² − δ²)]: bound δ from below over the
+            // interval (zero where the segment crosses the centre line).
+            let (la, lb) = (lo + ld * ta - off, lo + ld * tb - off);
+            let delta = if la * lb <= 0.0 { 0.0 } else { la.abs().min(lb.abs()) };
+            let half = (ch.r * ch.r - delta * delta).max(0.0).sqrt();
             let (sa, sb) = (so + sd * ta, so + sd * tb);
-            let k0 = floor_fast((sa.min(sb) - ch.r) * ch.inv_ds) as i64 - 1;
-            let k1 = floor_fast((sa.max(sb) + ch.r) * ch.inv_ds) as i64;
+            // k ≥ (s_min − half)/ds − 1 and k ≤ (s_max + half)/ds.
+            let k0 = -floor_fast(-(sa.min(sb) - half) * ch.inv_ds) as i64 - 1;
+            let k1 = floor_fast((sa.max(sb) + half) * ch.inv_ds) as i64;
             let n = ch.caps.len() as i64;
             for k in k0..=k1 {
                 let j = k.rem_euclid(n);
