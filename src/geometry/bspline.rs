@@ -23,7 +23,7 @@ pub struct PeriodicBSpline {
 #[inline]
 pub fn floor_fast(u: f32) -> f32 {
     // Beyond 2^23 every f32 is an integer already (and `as i32` would saturate).
-    if !(u.abs() < 8_388_608.0) {
+    if u.is_nan() || u.abs() >= 8_388_608.0 {
         return u;
     }
     let t = u as i32 as f32;

@@ -126,7 +126,7 @@ fn wrap_coord(x: f32, size: f32) -> f32 {
     if (0.0..size).contains(&x) {
         return x;
     }
-    if !(x.abs() < 1e6) {
+    if x.is_nan() || x.abs() >= 1e6 {
         // Far from the tile the floored quotient loses precision: take the exact remainder.
         return x.rem_euclid(size);
     }
