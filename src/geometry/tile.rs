@@ -1,48 +1,48 @@
-//! One periodic tile of yarn tubes, traced with wrap-around.
+//! One periodic tile of yarn tubes in an `obvhs` BVH, traced with wrap-around.
 //!
-//! Each yarn's centre curve is tessellated into short capsules (sphere-swept segments,
-//! [`SEGMENTS_PER_CELL`] per crossed cell) over one period of the curve; a ray inside the tile's
-//! xy-cell looks them up by position (see [`TileGeometry::closest`]) and a ray leaving the cell
-//! re-enters on the opposite side: one tile of the minimum pattern stands for the whole (infinite)
-//! fabric.
-//!
-//! Why no BVH: the yarns of a weave sit on a regular grid (weft `i` at `y = (i + ½)·PITCH`, warp
-//! `j` at `x = (j + ½)·PITCH`), so the yarns a ray segment can meet follow from the segment's
-//! lateral extent, and the capsules of one yarn from its extent along the yarn (they are spaced
-//! uniformly in `s`). That lookup replaced an 8-wide BVH over the same capsules, whose traversal
-//! was a sixth of a render's profile (docs/benchmarks.md); the hits are the same capsules.
+//! Each yarn's centre curve is tessellated into short capsules (sphere-swept segments, one per
+//! control interval) that extend one cell past the tile on both ends, so that a ray inside the tile's
+//! xy-cell finds every tube that reaches into it. A ray leaving the cell re-enters on the opposite
+//! side: one tile of the minimum pattern stands for the whole (infinite) fabric.
 
-use super::bspline::floor_fast;
-use super::yarn::{Family, YarnSet, PITCH};
+use super::yarn::{YarnSet, PITCH};
 
 /// Capsules per yarn per crossed cell. Shading uses the exact spline tube, so the capsule chain only
 /// has to find hits: 6 per cell keeps the chain within ~0.07 units of the tube (sagitta of the crimp).
 pub const SEGMENTS_PER_CELL: usize = 6;
 use glam::{Vec3, Vec3A};
+use obvhs::{aabb::Aabb, cwbvh::CwBvh, ray::Ray, Boundable, BvhBuildParams};
 
-/// A capsule: the set of points within `r` of segment `a–b`.
+/// A capsule: the set of points within `r` of segment `a–b`, tagged with its yarn.
 #[derive(Clone, Copy, Debug)]
-struct Capsule {
+pub struct Capsule {
     a: Vec3A,
     b: Vec3A,
-    /// `b − a`, `|b − a|²` and `r²·|b − a|²`, precomputed: every ray that reaches the capsule
-    /// needs them (capsule intersection was a fifth of a render's profile).
+    /// `b − a`, `|b − a|²` and `r²·|b − a|²`, precomputed: every ray that reaches the capsule's
+    /// box needs them (capsule intersection was a fifth of a render's profile).
     ba: Vec3A,
     baba: f32,
     rr_baba: f32,
-    rr: f32,
+    r: f32,
+    yarn: u32,
+}
+
+impl Boundable for Capsule {
+    fn aabb(&self) -> Aabb {
+        let r = Vec3A::splat(self.r);
+        Aabb::new(self.a.min(self.b) - r, self.a.max(self.b) + r)
+    }
 }
 
 impl Capsule {
-    fn new(a: Vec3A, b: Vec3A, r: f32) -> Self {
+    fn new(a: Vec3A, b: Vec3A, r: f32, yarn: u32) -> Self {
         let ba = b - a;
         let baba = ba.dot(ba);
-        Capsule { a, b, ba, baba, rr_baba: r * r * baba, rr: r * r }
+        Capsule { a, b, ba, baba, rr_baba: r * r * baba, r, yarn }
     }
 
     /// Entry distance along a unit-direction ray (near root); `INFINITY` if missed or if the origin
     /// is inside (a ray leaving a tube does not "hit" it).
-    #[inline]
     fn intersect(&self, o: Vec3A, d: Vec3A) -> f32 {
         let (ba, baba) = (self.ba, self.baba);
         let oa = o - self.a;
@@ -56,7 +56,6 @@ impl Capsule {
         if qa > 1e-9 * baba {
             let h = qb * qb - qa * qc;
             if h < 0.0 {
-                // The ray misses the infinite cylinder, which contains the capsule.
                 return f32::INFINITY;
             }
             let t = (-qb - h.sqrt()) / qa;
@@ -65,13 +64,10 @@ impl Capsule {
                 return if t > 0.0 { t } else { f32::INFINITY };
             }
         }
-        // The end caps. Both are tested although the sphere at b is the next capsule's sphere at a:
-        // a ray whose origin is inside this capsule's cylinder returns above without testing its
-        // spheres, and the neighbour's test of the shared sphere keeps the hit set identical to
-        // the whole capsules of the BVH this lookup replaced (equal renders, see the module doc).
-        let sphere = |oc: Vec3A| {
+        let sphere = |c: Vec3A| {
+            let oc = o - c;
             let b = d.dot(oc);
-            let h = b * b - (oc.dot(oc) - self.rr);
+            let h = b * b - (oc.dot(oc) - self.r * self.r);
             if h < 0.0 {
                 return f32::INFINITY;
             }
@@ -82,8 +78,30 @@ impl Capsule {
                 f32::INFINITY
             }
         };
-        sphere(oa).min(sphere(o - self.b))
+        sphere(self.a).min(sphere(self.b))
     }
+}
+
+/// `x mod size` in `[0, size]` like `f32::rem_euclid` (which is an `fmodf` call, 1.5 % of a
+/// render's profile): the quotient is floored in registers and one correction step absorbs its
+/// rounding.
+#[inline]
+fn wrap_coord(x: f32, size: f32) -> f32 {
+    if (0.0..size).contains(&x) {
+        return x;
+    }
+    if !(x.abs() < 1e6) {
+        // Far from the tile the floored quotient loses precision: take the exact remainder.
+        return x.rem_euclid(size);
+    }
+    let mut r = x - super::bspline::floor_fast(x / size) * size;
+    if r >= size {
+        r -= size;
+    }
+    if r < 0.0 {
+        r += size;
+    }
+    r
 }
 
 /// A ray–tube hit in tile coordinates.
@@ -97,75 +115,40 @@ pub struct TubeHit {
     pub yarn: usize,
 }
 
-/// One yarn's capsule chain over one period of its curve.
-struct Chain {
-    /// Capsule `k` spans `s ∈ [k·ds, (k+1)·ds]`; capsule `k + m·n` is capsule `k` moved by
-    /// `m·period` along the yarn.
-    caps: Vec<Capsule>,
-    inv_ds: f32,
-    period: f32,
-    r: f32,
-}
-
-/// Geometry of one periodic tile: yarn curves and their capsule chains.
+/// Geometry of one periodic tile: yarn curves, capsules and their BVH.
 pub struct TileGeometry {
     /// The yarn curves.
     pub set: YarnSet,
-    chains: Vec<Chain>,
-    /// Index of the first warp in `set.yarns` (the wefts come first).
-    n_weft: usize,
+    caps: Vec<Capsule>,
+    bvh: CwBvh,
     z_lo: f32,
     z_hi: f32,
 }
 
-/// `x mod size` in `[0, size]` like `f32::rem_euclid` (which is an `fmodf` call, 1.5 % of a
-/// render's profile): the quotient is floored in registers and one correction step absorbs its
-/// rounding.
-#[inline]
-fn wrap_coord(x: f32, size: f32) -> f32 {
-    if (0.0..size).contains(&x) {
-        return x;
-    }
-    if x.is_nan() || x.abs() >= 1e6 {
-        // Far from the tile the floored quotient loses precision: take the exact remainder.
-        return x.rem_euclid(size);
-    }
-    let mut r = x - floor_fast(x / size) * size;
-    if r >= size {
-        r -= size;
-    }
-    if r < 0.0 {
-        r += size;
-    }
-    r
-}
-
 impl TileGeometry {
-    /// Tessellate the yarns into capsule chains.
+    /// Tessellate the yarns and build the BVH.
     pub fn new(set: YarnSet) -> Self {
-        let chains = set
-            .yarns
-            .iter()
-            .map(|y| {
-                let n = ((y.period() / PITCH).round() as usize * SEGMENTS_PER_CELL).max(1);
-                let ds = y.period() / n as f32;
-                let caps = (0..n)
-                    .map(|k| {
-                        let (s0, s1) = (k as f32 * ds, (k + 1) as f32 * ds);
-                        Capsule::new(y.point(s0).into(), y.point(s1).into(), y.radius)
-                    })
-                    .collect();
-                Chain { caps, inv_ds: 1.0 / ds, period: y.period(), r: y.radius }
-            })
-            .collect();
-        let n_weft = set.yarns.iter().take_while(|y| y.family == Family::Weft).count();
+        let mut caps = Vec::new();
+        for (yi, y) in set.yarns.iter().enumerate() {
+            let n = (y.period() / PITCH).round() as i64 * SEGMENTS_PER_CELL as i64;
+            let ds = y.period() / n as f32;
+            let margin = SEGMENTS_PER_CELL as i64;
+            for k in -margin..n + margin {
+                let (s0, s1) = (k as f32 * ds, (k + 1) as f32 * ds);
+                caps.push(Capsule::new(y.point(s0).into(), y.point(s1).into(), y.radius, yi as u32));
+            }
+        }
+        let mut t = std::time::Duration::default();
+        let bvh = obvhs::cwbvh::builder::build_cwbvh(&caps, BvhBuildParams::fast_build(), &mut t);
+        // Reorder once so BVH primitive ids index `caps` directly.
+        let caps: Vec<Capsule> = bvh.primitive_indices.iter().map(|&i| caps[i as usize]).collect();
         let z = set.z_max() + 0.05;
-        TileGeometry { set, chains, n_weft, z_lo: -z, z_hi: z }
+        TileGeometry { set, caps, bvh, z_lo: -z, z_hi: z }
     }
 
-    /// Number of capsules (one period of every yarn).
+    /// Number of capsules in the BVH.
     pub fn capsule_count(&self) -> usize {
-        self.chains.iter().map(|c| c.caps.len()).sum()
+        self.caps.len()
     }
 
     /// Top of the cloth slab.
@@ -178,99 +161,16 @@ impl TileGeometry {
         Vec3::new(wrap_coord(p.x, self.set.tile_x), wrap_coord(p.y, self.set.tile_y), p.z)
     }
 
-    /// Closest capsule entry of one family along `o + t·d`, `t ∈ (0, best.0)`, for a ray segment
-    /// that stays inside the tile's xy-cell up to `best.0`; updates `best = (t, yarn)`.
-    ///
-    /// Yarn `first + i` of the family lies at lateral coordinate `(i + ½)·PITCH`; only the yarns
-    /// whose tube reaches the segment's lateral extent are visited, and of each only the capsules
-    /// whose extent along `s` meets the segment's.
-    #[allow(clippy::too_many_arguments)]
-    fn closest_family(
-        &self,
-        first: usize,
-        count: usize,
-        o: Vec3,
-        d: Vec3,
-        weft: bool,
-        skip: Option<(usize, f32)>,
-        travelled: f32,
-        best: &mut (f32, usize),
-    ) {
-        if count == 0 {
-            return;
-        }
-        // Lateral (across the yarns) and along-the-yarn coordinates of the ray.
-        let (lo, ld, so, sd) = if weft { (o.y, d.y, o.x, d.x) } else { (o.x, d.x, o.y, d.y) };
-        let r_max = self.chains[first..first + count].iter().map(|c| c.r).fold(0.0f32, f32::max);
-        let l_end = lo + ld * best.0;
-        let (l_min, l_max) = (lo.min(l_end), lo.max(l_end));
-        let i0 = ((l_min - r_max) / PITCH - 0.5).ceil().max(0.0) as usize;
-        let i1 = ((l_max + r_max) / PITCH - 0.5).floor();
-        if i1 < 0.0 {
-            return;
-        }
-        let i1 = (i1 as usize).min(count - 1);
-        let (oa, da): (Vec3A, Vec3A) = (o.into(), d.into());
-        for i in i0..=i1 {
-            let yi = first + i;
-            let ch = &self.chains[yi];
-            let off = (i as f32 + 0.5) * PITCH;
-            // Parameter interval inside the slab |lateral − off| ≤ r.
-            let (mut ta, mut tb) = if ld.abs() > 1e-12 {
-                let (t0, t1) = ((off - ch.r - lo) / ld, (off + ch.r - lo) / ld);
-                (t0.min(t1), t0.max(t1))
-            } else if (lo - off).abs() <= ch.r {
-                (0.0, f32::INFINITY)
-            } else {
-                continue;
-            };
-            ta = ta.max(0.0);
-            tb = tb.min(best.0);
-            if ta > tb {
-                continue;
-            }
-            // A point at lateral distance δ from the centre line meets capsule k only where
-            // s ∈ [k·ds − √(r² − δ²), (k+1)·ds + √(r² − δ²)]: bound δ from below over the
-            // interval (zero where the segment crosses the centre line).
-            let (la, lb) = (lo + ld * ta - off, lo + ld * tb - off);
-            let delta = if la * lb <= 0.0 { 0.0 } else { la.abs().min(lb.abs()) };
-            let half = (ch.r * ch.r - delta * delta).max(0.0).sqrt();
-            let (sa, sb) = (so + sd * ta, so + sd * tb);
-            // k ≥ (s_min − half)/ds − 1 and k ≤ (s_max + half)/ds.
-            let k0 = -floor_fast(-(sa.min(sb) - half) * ch.inv_ds) as i64 - 1;
-            let k1 = floor_fast((sa.max(sb) + half) * ch.inv_ds) as i64;
-            let n = ch.caps.len() as i64;
-            for k in k0..=k1 {
-                let j = k.rem_euclid(n);
-                let shift = ((k - j) / n) as f32 * ch.period;
-                let o_k = if shift == 0.0 {
-                    oa
-                } else if weft {
-                    oa - Vec3A::new(shift, 0.0, 0.0)
-                } else {
-                    oa - Vec3A::new(0.0, shift, 0.0)
-                };
-                let t = ch.caps[j as usize].intersect(o_k, da);
-                if t >= best.0 {
-                    continue;
-                }
-                if let Some((sy, st)) = skip {
-                    if sy == yi && travelled + t < st {
-                        continue;
-                    }
-                }
-                *best = (t, yi);
-            }
-        }
-    }
-
     /// Closest tube entry along `o + t·d` (unit `d`), `t > 0`. `skip = (yarn, t)` ignores entries of
     /// that yarn closer than `t` (a ray just leaving that yarn).
     pub fn closest(&self, o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> Option<TubeHit> {
         let (tx, ty) = (self.set.tile_x, self.set.tile_y);
         let mut o = self.wrap(o);
         let mut travelled = 0.0f32;
-        let n_warp = self.set.yarns.len() - self.n_weft;
+        let da: Vec3A = d.into();
+        // Axis-parallel rays make 0·∞ = NaN in the BVH's slab tests: nudge zero components.
+        let nudge = |c: f32| if c.abs() < 1e-7 { 1e-7f32.copysign(c) } else { c };
+        let d_bvh = Vec3A::new(nudge(d.x), nudge(d.y), nudge(d.z));
         for _ in 0..256 {
             if (d.z >= 0.0 && o.z >= self.z_hi) || (d.z <= 0.0 && o.z <= self.z_lo) {
                 return None;
@@ -293,10 +193,23 @@ impl TileGeometry {
             };
             let t_cell = exit(o.x, d.x, tx).min(exit(o.y, d.y, ty)).max(0.0);
             let t_end = t_cell.min(t_slab);
-            let mut best = (t_end + 1e-4, usize::MAX);
-            self.closest_family(0, self.n_weft, o, d, true, skip, travelled, &mut best);
-            self.closest_family(self.n_weft, n_warp, o, d, false, skip, travelled, &mut best);
-            if best.1 != usize::MAX {
+            let ray = Ray::new(o.into(), d_bvh, 0.0, t_end + 1e-4);
+            let mut best = (f32::INFINITY, 0usize);
+            let oa: Vec3A = o.into();
+            self.bvh.ray_traverse(ray, &mut obvhs::ray::RayHit::none(), |r, id| {
+                let c = &self.caps[id];
+                let t = c.intersect(oa, da);
+                if let Some((sy, st)) = skip {
+                    if c.yarn as usize == sy && travelled + t < st {
+                        return f32::INFINITY;
+                    }
+                }
+                if t < r.tmax && t < best.0 {
+                    best = (t, c.yarn as usize);
+                }
+                t
+            });
+            if best.0.is_finite() {
                 let p = self.wrap(o + d * best.0);
                 return Some(TubeHit { t: travelled + best.0, p, yarn: best.1 });
             }
