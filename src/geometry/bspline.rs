@@ -2,17 +2,59 @@
 
 /// A periodic uniform cubic B-spline `z(s)`, `s ∈ ℝ` with period `period`; control value `k` sits
 /// at `s_k = (k + ½)·Δ`, `Δ = period / K`.
+///
+/// Each segment is cached as the power-basis cubic `c0 + c1·t + c2·t² + c3·t³` of its local
+/// parameter `t ∈ [0, 1)` (the de Boor basis multiplied out once per segment): an evaluation is
+/// then one Horner scheme instead of twelve basis polynomials and four control look-ups. Yarn
+/// geometry evaluates this spline in every closest-point and tube-exit Newton step, which made it
+/// a sixth of the render time (docs/benchmarks.md, profile).
 #[derive(Clone, Debug)]
 pub struct PeriodicBSpline {
-    ctrl: Vec<f32>,
+    /// Power-basis coefficients `[c0, c1, c2, c3]` of segment `i` (between control values `i`
+    /// and `i + 1`).
+    coef: Vec<[f32; 4]>,
     period: f32,
+    /// Segments per unit `s` (`K / period`).
+    du: f32,
+}
+
+/// `⌊u⌋` without a libm call: the release build targets baseline x86-64 (no SSE4.1 `roundss`),
+/// where `f32::floor` is a function call that showed up at 3 % of a render's profile.
+#[inline]
+pub fn floor_fast(u: f32) -> f32 {
+    // Beyond 2^23 every f32 is an integer already (and `as i32` would saturate).
+    if u.is_nan() || u.abs() >= 8_388_608.0 {
+        return u;
+    }
+    let t = u as i32 as f32;
+    if t > u {
+        t - 1.0
+    } else {
+        t
+    }
 }
 
 impl PeriodicBSpline {
     /// Spline through (approximating) `ctrl` over one period.
     pub fn new(ctrl: Vec<f32>, period: f32) -> Self {
         assert!(!ctrl.is_empty() && period > 0.0);
-        PeriodicBSpline { ctrl, period }
+        let k = ctrl.len();
+        let c = |i: usize| ctrl[i % k];
+        let coef = (0..k)
+            .map(|i| {
+                let (p0, p1, p2, p3) = (c(i + k - 1), c(i), c(i + 1), c(i + 2));
+                // Uniform cubic B-spline (de Boor) segment between control values i and i+1 in the
+                // power basis: b0 = (1−t)³/6, b1 = (3t³ − 6t² + 4)/6, b2 = (−3t³ + 3t² + 3t + 1)/6,
+                // b3 = t³/6, collected by powers of t.
+                [
+                    (p0 + 4.0 * p1 + p2) / 6.0,
+                    (p2 - p0) / 2.0,
+                    (p0 - 2.0 * p1 + p2) / 2.0,
+                    (-p0 + 3.0 * p1 - 3.0 * p2 + p3) / 6.0,
+                ]
+            })
+            .collect();
+        PeriodicBSpline { coef, du: k as f32 / period, period }
     }
 
     /// Period length.
@@ -20,43 +62,30 @@ impl PeriodicBSpline {
         self.period
     }
 
-    fn locate(&self, s: f32) -> (usize, f32) {
-        let k = self.ctrl.len();
-        let u = s * (k as f32 / self.period) - 0.5;
-        let i = u.floor();
+    #[inline]
+    fn locate(&self, s: f32) -> (&[f32; 4], f32) {
+        let u = s * self.du - 0.5;
+        let i = floor_fast(u);
         let t = u - i;
-        ((i as i64).rem_euclid(k as i64) as usize, t)
+        let k = self.coef.len() as i64;
+        (&self.coef[(i as i64).rem_euclid(k) as usize], t)
     }
 
-    fn c(&self, i: usize) -> f32 {
-        self.ctrl[i % self.ctrl.len()]
+    /// Value at `s`.
+    #[inline]
+    pub fn value(&self, s: f32) -> f32 {
+        let (c, t) = self.locate(s);
+        ((c[3] * t + c[2]) * t + c[1]) * t + c[0]
     }
 
     /// Value, first and second derivative with respect to `s`.
+    #[inline]
     pub fn eval(&self, s: f32) -> (f32, f32, f32) {
-        let (i, t) = self.locate(s);
-        let k = self.ctrl.len();
-        let (p0, p1, p2, p3) = (self.c(i + k - 1), self.c(i), self.c(i + 1), self.c(i + 2));
-        let t2 = t * t;
-        let t3 = t2 * t;
-        // Uniform cubic B-spline basis (de Boor), segment between control values i and i+1.
-        let b0 = (1.0 - t).powi(3) / 6.0;
-        let b1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0;
-        let b2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0;
-        let b3 = t3 / 6.0;
-        let d0 = -(1.0 - t).powi(2) / 2.0;
-        let d1 = (3.0 * t2 - 4.0 * t) / 2.0;
-        let d2 = (-3.0 * t2 + 2.0 * t + 1.0) / 2.0;
-        let d3 = t2 / 2.0;
-        let e0 = 1.0 - t;
-        let e1 = 3.0 * t - 2.0;
-        let e2 = -3.0 * t + 1.0;
-        let e3 = t;
-        let du = k as f32 / self.period;
-        let v = b0 * p0 + b1 * p1 + b2 * p2 + b3 * p3;
-        let d = (d0 * p0 + d1 * p1 + d2 * p2 + d3 * p3) * du;
-        let dd = (e0 * p0 + e1 * p1 + e2 * p2 + e3 * p3) * du * du;
-        (v, d, dd)
+        let (c, t) = self.locate(s);
+        let v = ((c[3] * t + c[2]) * t + c[1]) * t + c[0];
+        let d = ((3.0 * c[3]) * t + 2.0 * c[2]) * t + c[1];
+        let dd = (6.0 * c[3]) * t + 2.0 * c[2];
+        (v, d * self.du, dd * self.du * self.du)
     }
 }
 
@@ -76,6 +105,30 @@ mod tests {
             let x = k as f32 * 0.51;
             assert!((s.eval(x).0 - s.eval(x + 20.0).0).abs() < 1e-4);
             assert!((s.eval(x).0 - s.eval(x - 40.0).0).abs() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn power_basis_matches_the_de_boor_basis() {
+        let ctrl: Vec<f32> = (0..24).map(|k| (k as f32 * 0.9).cos() * 3.0 + (k % 5) as f32).collect();
+        let s = PeriodicBSpline::new(ctrl.clone(), 20.0);
+        let k = ctrl.len();
+        for j in 0..500 {
+            let x = j as f32 * 0.173 - 31.0;
+            let u = x * (k as f32 / 20.0) - 0.5;
+            let i = u.floor();
+            let t = u - i;
+            let i = (i as i64).rem_euclid(k as i64) as usize;
+            let p = |m: usize| ctrl[m % k];
+            let want = (1.0 - t).powi(3) / 6.0 * p(i + k - 1)
+                + (3.0 * t * t * t - 6.0 * t * t + 4.0) / 6.0 * p(i)
+                + (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) / 6.0 * p(i + 1)
+                + t * t * t / 6.0 * p(i + 2);
+            assert!((s.value(x) - want).abs() < 1e-5, "{x}: {} vs {want}", s.value(x));
+            assert_eq!(s.value(x), s.eval(x).0);
+        }
+        for u in [-3.5f32, -3.0, -0.2, 0.0, 0.7, 1.0, 2.5, 1e9, -1e9] {
+            assert_eq!(floor_fast(u), u.floor(), "{u}");
         }
     }
 

@@ -87,7 +87,9 @@ impl CrossSection {
 
     /// Linear interpolation at angle `a` (radians, any value) of one of the tables.
     pub fn lookup(table: &[f32], a: f32) -> f32 {
-        let u = (a / TAU).rem_euclid(1.0) * TABLE_RES as f32;
+        // Fraction of a turn, floored in registers (`rem_euclid` is an `fmodf` call).
+        let turns = a * (1.0 / TAU);
+        let u = (turns - super::bspline::floor_fast(turns)) * TABLE_RES as f32;
         let k = (u as usize).min(TABLE_RES - 1);
         let f = u - k as f32;
         table[k] * (1.0 - f) + table[(k + 1) % TABLE_RES] * f
@@ -101,6 +103,32 @@ pub fn element_radius(n: u32) -> f32 {
     }
     let s = (PI / n as f32).sin();
     s / (1.0 + s)
+}
+
+/// Per-`n_p` constants of the ply loop: the element radius and the rotation by `2π/n_p`.
+#[derive(Clone, Copy)]
+struct PlyConsts {
+    element_radius: f32,
+    step: Vec2,
+}
+
+impl PlyConsts {
+    fn compute(n: u32) -> Self {
+        PlyConsts { element_radius: element_radius(n), step: Vec2::from_angle(TAU / n.max(1) as f32) }
+    }
+}
+
+/// [`PlyConsts`] for `n_p`, tabulated once for 0–16 (a `sinf` per ply query otherwise).
+fn ply_consts(n_p: u32) -> PlyConsts {
+    static CONSTS: OnceLock<Vec<PlyConsts>> = OnceLock::new();
+    let all = CONSTS.get_or_init(|| (0..=16u32).map(PlyConsts::compute).collect());
+    all.get(n_p as usize).copied().unwrap_or_else(|| PlyConsts::compute(n_p))
+}
+
+/// `tan` of the ply and the fiber twist angles, computed once (a `tanf` per ply query otherwise).
+fn twist_tans() -> (f32, f32) {
+    static TANS: OnceLock<(f32, f32)> = OnceLock::new();
+    *TANS.get_or_init(|| (PLY_TWIST_DEG.to_radians().tan(), FIBER_TWIST_DEG.to_radians().tan()))
 }
 
 /// Fiber cross-section for `n_f` fibers, cached (fixed seed per count: reproducible renders).
@@ -156,9 +184,9 @@ pub struct PlyHit {
 impl PlyModel {
     /// Ply-circle geometry for a yarn of radius `r`: (ply radius, ring radius, twist per length).
     fn layout(&self, r: f32) -> (f32, f32, f32) {
-        let rp = element_radius(self.n_p) * r;
+        let rp = ply_consts(self.n_p).element_radius * r;
         let ring = r - rp;
-        let kappa = if ring > 1e-6 { PLY_TWIST_DEG.to_radians().tan() / ring } else { 0.0 };
+        let kappa = if ring > 1e-6 { twist_tans().0 / ring } else { 0.0 };
         (rp, ring, kappa)
     }
 
@@ -174,7 +202,7 @@ impl PlyModel {
         // n_p identical plies repeat after 1/n_p of a turn, so that is the period the plies need.
         let kappa = if kappa0 > 0.0 { whole(kappa0, len, TAU / self.n_p as f32) } else { 0.0 };
         let ply_len = len * (1.0 + (ring * kappa).powi(2)).sqrt();
-        let kappa_f = if rp > 1e-6 { -whole(FIBER_TWIST_DEG.to_radians().tan() / rp, ply_len, TAU) } else { 0.0 };
+        let kappa_f = if rp > 1e-6 { -whole(twist_tans().1 / rp, ply_len, TAU) } else { 0.0 };
         (kappa, kappa_f)
     }
 
@@ -196,18 +224,25 @@ impl PlyModel {
         let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
         let aa = dv.dot(dv);
         let tol = 1e-3 * yarn.radius;
-        let mut best: Option<(f32, usize)> = None;
+        let mut best: Option<(f32, usize, Vec2)> = None;
         let mut crossed = 0;
+        // Ply i sits at angle β_i = 2πi/n_p + κ·arc: one sincos for ply 0, then a rotation by
+        // 2π/n_p per ply (a sincos per ply and call was 4 % of a render's profile).
+        let base = kappa * f.arc;
+        let mut dir = Vec2::new(base.cos(), base.sin());
+        let step = ply_consts(self.n_p).step;
         for i in 0..self.n_p as usize {
-            let beta = TAU * i as f32 / self.n_p as f32 + kappa * f.arc;
-            let c = Vec2::new(beta.cos(), beta.sin()) * ring;
+            if i > 0 {
+                dir = step.rotate(dir);
+            }
+            let c = dir * ring;
             let oc = a - c;
             let cc = oc.dot(oc) - rp * rp;
             if aa < 1e-10 {
                 // Ray along the yarn axis: it "hits" the ply it starts in.
                 if cc <= 0.0 {
                     crossed += 1;
-                    best = Some((0.0, i));
+                    best = Some((0.0, i, dir));
                 }
                 continue;
             }
@@ -222,21 +257,22 @@ impl PlyModel {
             if let Some(t) = cand {
                 let better = match best {
                     None => true,
-                    Some((bt, _)) => (entry && t < bt) || (!entry && t > bt),
+                    Some((bt, _, _)) => (entry && t < bt) || (!entry && t > bt),
                 };
                 if better {
-                    best = Some((t, i));
+                    best = Some((t, i, dir));
                 }
             }
         }
-        let (t, i) = best?;
+        let (t, i, dir) = best?;
         let beta = TAU * i as f32 / self.n_p as f32 + kappa * f.arc;
         Some(PlyLocal {
             t,
             crossed,
             hit: a + dv * t,
-            centre: Vec2::new(beta.cos(), beta.sin()) * ring,
+            centre: dir * ring,
             beta,
+            beta_dir: dir,
             rp,
             ring,
             kappa,
@@ -250,7 +286,7 @@ impl PlyModel {
         let l = self.intersect(yarn, q, d, entry)?;
         let f = l.frame;
         let n2 = (l.hit - l.centre).normalize_or(Vec2::Y);
-        let ply_t = (f.t + (f.ey * l.beta.cos() - f.ex * l.beta.sin()) * (l.ring * l.kappa)).normalize();
+        let ply_t = (f.t + (f.ey * l.beta_dir.x - f.ex * l.beta_dir.y) * (l.ring * l.kappa)).normalize();
         let mut np = f.ex * n2.x + f.ey * n2.y;
         np = (np - ply_t * np.dot(ply_t)).normalize_or(f.ey);
         // Ply-level AO at the untwisted angle of the hit around the yarn centre.
@@ -282,6 +318,8 @@ struct PlyLocal {
     hit: Vec2,
     centre: Vec2,
     beta: f32,
+    /// `(cos β, sin β)`.
+    beta_dir: Vec2,
     rp: f32,
     ring: f32,
     kappa: f32,

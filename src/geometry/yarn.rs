@@ -4,7 +4,7 @@
 //! yarn's height is a periodic cubic B-spline over `CTRL_PER_CELL` control values per crossed
 //! cell: `+h` where it lies on top, `−h` where it lies below, Gaussian-smoothed (kernel 16).
 
-use super::bspline::PeriodicBSpline;
+use super::bspline::{floor_fast, PeriodicBSpline};
 use crate::pattern::WeavePattern;
 use glam::Vec3;
 
@@ -47,6 +47,8 @@ pub struct YarnCurve {
     /// several repeats): twist rates are whole turns per repeat.
     pub repeat: f32,
     arc: Vec<f32>,
+    /// Arc-length table steps per unit `s` (`(arc.len() − 1) / period`).
+    arc_du: f32,
 }
 
 /// Local frame of a yarn at `s`.
@@ -80,7 +82,8 @@ impl YarnCurve {
             arc[k + 1] = arc[k] + ds / 6.0 * (slope(s0) + 4.0 * slope(s0 + ds / 2.0) + slope(s0 + ds));
         }
         let offset = (index as f32 + 0.5) * PITCH;
-        YarnCurve { family, index, offset, radius, height, repeat: period, arc }
+        let arc_du = n as f32 / period;
+        YarnCurve { family, index, offset, radius, height, repeat: period, arc, arc_du }
     }
 
     /// Period of the curve along `s`.
@@ -106,7 +109,7 @@ impl YarnCurve {
 
     /// Centre point at `s`.
     pub fn point(&self, s: f32) -> Vec3 {
-        let z = self.height.eval(s).0;
+        let z = self.height.value(s);
         match self.family {
             Family::Weft => Vec3::new(s, self.offset, z),
             Family::Warp => Vec3::new(self.offset, s, z),
@@ -123,9 +126,9 @@ impl YarnCurve {
     /// Arc length from 0 to `s` (periodic extension).
     pub fn arc_length(&self, s: f32) -> f32 {
         let p = self.period();
-        let laps = (s / p).floor();
-        let u = (s - laps * p) / p * (self.arc.len() - 1) as f32;
-        let k = (u as usize).min(self.arc.len() - 2);
+        let laps = floor_fast(s / p);
+        let u = (s - laps * p) * self.arc_du;
+        let k = (u.max(0.0) as usize).min(self.arc.len() - 2);
         let f = u - k as f32;
         laps * self.arc[self.arc.len() - 1] + self.arc[k] * (1.0 - f) + self.arc[k + 1] * f
     }

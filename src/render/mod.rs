@@ -222,6 +222,24 @@ impl RowCache {
         }
         out
     }
+
+    /// [`RowCache::shade`] with the 30 appearance derivatives ([`shade::shade_path_gradient`]).
+    fn shade_gradient(
+        &self,
+        g: &shade::GradientParams,
+        w: u32,
+        scale: f32,
+        tex: Option<&BodyTexture>,
+    ) -> Vec<[Dual<N_APPEARANCE>; 3]> {
+        let mut out = vec![[Dual::c(0.0); 3]; w as usize];
+        for &(col, bg, v0, nv) in &self.samples {
+            let l = shade::shade_path_gradient(g, bg, &self.verts[v0 as usize..(v0 + nv) as usize], &self.lights, tex);
+            for k in 0..3 {
+                out[col as usize][k] += l[k] * scale;
+            }
+        }
+        out
+    }
 }
 
 /// `(pixel, texel slot, rgb)`: the part of a pixel that is linear in one texel's body multiplier.
@@ -302,16 +320,16 @@ impl PathCache {
     /// Re-shade with exact derivatives: per pixel and channel the value and ∂/∂θ for all
     /// [`N_APPEARANCE`] appearance scalars.
     pub fn shade_with_derivatives(&self, a: &Appearance) -> Vec<[Dual<N_APPEARANCE>; 3]> {
-        let sp = ShadeParams::with_derivatives(a);
+        let g = shade::GradientParams::new(a);
         let scale = self.exposure / self.spp as f32;
         let tex = self.texture.as_ref();
-        self.rows.par_iter().flat_map_iter(|r| r.shade(&sp, self.width, scale, tex)).collect()
+        self.rows.par_iter().flat_map_iter(|r| r.shade_gradient(&g, self.width, scale, tex)).collect()
     }
 
     /// Mean squared error against `target` and its exact gradient with respect to the appearance
     /// vector (chain rule through [`PathCache::shade_with_derivatives`]).
     pub fn mse_and_gradient(&self, a: &Appearance, target: &Image) -> (f32, [f32; N_APPEARANCE]) {
-        let sp = ShadeParams::with_derivatives(a);
+        let g = shade::GradientParams::new(a);
         let scale = self.exposure / self.spp as f32;
         let n = (self.width * self.height * 3) as f32;
         let (loss, grad) = self
@@ -319,7 +337,7 @@ impl PathCache {
             .par_iter()
             .enumerate()
             .map(|(row, r)| {
-                let px = r.shade(&sp, self.width, scale, self.texture.as_ref());
+                let px = r.shade_gradient(&g, self.width, scale, self.texture.as_ref());
                 let mut loss = 0.0f32;
                 let mut g = [0.0f32; N_APPEARANCE];
                 for (col, p) in px.iter().enumerate() {
