@@ -216,7 +216,7 @@ pub struct NetSpec {
     pub convs_per_block: usize,
     /// Width of the hidden layer of the parameter head.
     pub hidden: usize,
-    /// Negative slope of the LeakyReLU of the parameter head.
+    /// Negative slope of the LeakyReLUs (trunk and parameter head).
     pub leaky_slope: f64,
     /// Scalar outputs (mean and log-variance each), in the order of [`Sample::targets`].
     pub outputs: Vec<OutputSpec>,

@@ -4,8 +4,8 @@
 //!
 //! ```text
 //! input (B,4,H,W), H and W multiples of px_per_cell = 2^K
-//!   block k = 0..K: [conv3×3 + ReLU] × convs_per_block  →  max-pool 2     (H/2^K = cells)
-//!   cell convs:     [conv3×3 + ReLU] per entry of cell_convs               (a cell sees its neighbours)
+//!   block k = 0..K: [conv3×3 + LeakyReLU] × convs_per_block  →  max-pool 2  (H/2^K = cells)
+//!   cell convs:     [conv3×3 + LeakyReLU] per entry of cell_convs          (a cell sees its neighbours)
 //!   cell head:      conv1×1 → (B,1,h,w) logits: > 0 means the horizontal yarn (weft) is on top
 //!   parameter head: spatial mean ‖ max of the cell features → fc (hidden) → LeakyReLU →
 //!                   (mean = sigmoid, log-variance clamped to [−12, 2]) per output
@@ -88,15 +88,20 @@ impl PreNet {
     /// Forward pass on a batch `(B, 4, H, W)` of preprocessed views (H, W multiples of
     /// `px_per_cell`).
     pub fn forward(&self, x: &Tensor) -> Result<NetOutput> {
+        // LeakyReLU throughout: with plain ReLUs the trunk died within the first epoch on the
+        // rendered views (every unit of the last layer negative, the cell loss stuck at ln 2 for
+        // any learning rate from 3e-4 to 1e-2), and a dead unit never recovers.
+        let s = self.spec.leaky_slope;
+        let leaky = |t: Tensor| -> Result<Tensor> { (t.relu()? * (1.0 - s))? + (t * s)? };
         let mut h = x.clone();
         for convs in &self.blocks {
             for conv in convs {
-                h = h.apply(conv)?.relu()?;
+                h = leaky(h.apply(conv)?)?;
             }
             h = h.max_pool2d(2)?;
         }
         for conv in &self.cell {
-            h = h.apply(conv)?.relu()?;
+            h = leaky(h.apply(conv)?)?;
         }
         let cell_logits = h.apply(&self.cell_head)?.squeeze(1)?;
         let (mut mean, mut log_var) = (None, None);
@@ -104,9 +109,7 @@ impl PreNet {
             let (b, c, hh, ww) = h.dims4()?;
             let flat = h.reshape((b, c, hh * ww))?;
             let pooled = Tensor::cat(&[flat.mean(2)?, flat.max(2)?], 1)?;
-            let s = self.spec.leaky_slope;
-            let z = fc1.forward(&pooled)?;
-            let z = ((z.relu()? * (1.0 - s))? + (z * s)?)?;
+            let z = leaky(fc1.forward(&pooled)?)?;
             let out = head.forward(&z)?;
             let n = self.spec.n_outputs();
             mean = Some(ops::sigmoid(&out.narrow(1, 0, n)?)?);
@@ -130,7 +133,8 @@ pub struct LossTerms {
 
 /// Binary cross-entropy of the cell logits against `cells` (same shape, 0/1), plus
 /// `param_weight` × the Gaussian negative log-likelihood `½(e^{−s}(μ − t)² + s)` of the
-/// normalised `targets` `(B, n_outputs)` under mean `μ` and log-variance `s`.
+/// normalised `targets` `(B, n_outputs)` under mean `μ` and log-variance `s`, each term weighted
+/// by its variance `e^s` held constant (β-NLL, β = 1).
 pub fn loss(out: &NetOutput, cells: &Tensor, targets: &Tensor, param_weight: f64) -> Result<LossTerms> {
     // BCE with logits, in the stable form max(l, 0) − l·t + ln(1 + e^{−|l|}).
     let l = &out.cell_logits;
@@ -139,9 +143,15 @@ pub fn loss(out: &NetOutput, cells: &Tensor, targets: &Tensor, param_weight: f64
     let (total, nll) = match (&out.mean, &out.log_var) {
         (Some(mu), Some(s)) => {
             let sq = (mu - targets)?.sqr()?;
-            let t = ((((s.neg()?.exp()? * sq)? + s)? * 0.5)?).mean_all()?;
-            let nll = t.to_scalar::<f32>()?;
-            ((bce_t + (t * param_weight)?)?, nll)
+            let per = (((s.neg()?.exp()? * sq)? + s)? * 0.5)?;
+            let nll = per.mean_all()?.to_scalar::<f32>()?;
+            // β-NLL with β = 1 (Seitzer et al. 2022, "On the pitfalls of heteroscedastic
+            // uncertainty estimation"): each term weighted by its own variance, held constant.
+            // The mean then gets the gradient of a squared error, not one scaled by 1/σ², which
+            // otherwise grows as the variances shrink and swamps the cells' gradient in the shared
+            // trunk; the variance's optimum (the squared error) is unchanged.
+            let weighted = (per * s.exp()?.detach())?.mean_all()?;
+            ((bce_t + (weighted * param_weight)?)?, nll)
         }
         _ => (bce_t, 0.0),
     };
@@ -257,7 +267,8 @@ mod tests {
         let bce = ((1.0 + (-2.0f32).exp()).ln() + (1.0 + 1.0f32.exp()).ln()) / 2.0;
         let nll = 0.5 * (1.0f32.exp() * 0.04 - 1.0);
         assert!((l.bce - bce).abs() < 1e-5 && (l.nll - nll).abs() < 1e-5, "{l:?}");
-        assert!((l.total.to_scalar::<f32>()? - (bce + 2.0 * nll)).abs() < 1e-5);
+        let beta = (-1.0f32).exp() * nll;
+        assert!((l.total.to_scalar::<f32>()? - (bce + 2.0 * beta)).abs() < 1e-5);
         Ok(())
     }
 
