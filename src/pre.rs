@@ -4,8 +4,8 @@
 
 use crate::image_io::Image;
 use crate::net::{cloth_targets, NetSpec, OutputSpec, PreEstimator, Sample, TrainConfig};
-use crate::pattern::WeavePattern;
 use crate::params::ClothParams;
+use crate::pattern::WeavePattern;
 use crate::progress::Progress;
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};

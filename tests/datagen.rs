@@ -187,7 +187,7 @@ fn recipe_errors_name_the_field() {
         ("\"both\"]", "\"sideways\"]", "lights.rigs[3]"),
         ("px_per_cell = 8", "px_per_cell = 7", "image.size"),
         ("random_share = 0.2", "random_share = -0.1", "patterns.random_share"),
-        ("size = 64", "size = 4", "image.size"),
+        ("\nsize = 64", "\nsize = 4", "image.size"),
         ("range = [0.6, 1.6]\ndist = \"loguniform\"", "range = [0.6, 1.6]\ndist = \"gaussian\"", "gaussian"),
         ("shot_gain = { range = [0.0, 0.002] }", "shot_gain = { range = [0.0, 2.0] }", "noise.shot_gain.range"),
         ("spp = 4", "spp = 4\nsamples = 3", "samples"),

@@ -48,7 +48,16 @@ fn tiny_generated_set_trains_and_predicts() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["outputs"].as_array().unwrap().len(), output_specs().len());
     assert_eq!(v["cell_logits"].as_array().unwrap().len(), 4);
-    let out = run(&["predict", img.to_str().unwrap(), "--model", model.to_str().unwrap(), "--one-repeat", "--grid", "3x2", "--json"]);
+    let out = run(&[
+        "predict",
+        img.to_str().unwrap(),
+        "--model",
+        model.to_str().unwrap(),
+        "--one-repeat",
+        "--grid",
+        "3x2",
+        "--json",
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let rows = v["cell_logits"].as_array().unwrap();
@@ -68,7 +77,8 @@ fn tiny_generated_set_trains_and_predicts() {
     let out = run(&["predict", txt.to_str().unwrap(), "--model", model.to_str().unwrap()]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot read image"));
-    let out = run(&["predict", img.to_str().unwrap(), "--model", model.to_str().unwrap(), "--one-repeat", "--grid", "0x3"]);
+    let out =
+        run(&["predict", img.to_str().unwrap(), "--model", model.to_str().unwrap(), "--one-repeat", "--grid", "0x3"]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("NExNA"));
 }
@@ -145,7 +155,15 @@ fn diag_cells() {
         spec.backbone = b.split(',').map(|x| x.parse().unwrap()).collect();
     }
     let lr: f64 = std::env::var("WOVEN_DIAG_LR").ok().and_then(|s| s.parse().ok()).unwrap_or(2e-3);
-    let cfg = TrainConfig { epochs: 4, lr, param_weight: pw, augment: false, val_fraction: 0.0, threads: 2, ..Default::default() };
+    let cfg = TrainConfig {
+        epochs: 4,
+        lr,
+        param_weight: pw,
+        augment: false,
+        val_fraction: 0.0,
+        threads: 2,
+        ..Default::default()
+    };
     let work = tempfile::tempdir().unwrap();
     let r = woven::net::train(&samples, &spec, &cfg, work.path(), false).unwrap();
     for e in &r.epochs {

@@ -150,8 +150,7 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
-    let rows: Vec<String> =
-        v.cells().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
+    let rows: Vec<String> = v.cells().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
     println!("pattern read ({n_e}×{n_a} cells; row i = weft i, 1 = weft over warp): {}", rows.join("/"));
     let weakest = (0..n_e)
         .flat_map(|i| (0..n_a).map(move |j| (i, j)))

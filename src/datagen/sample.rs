@@ -13,8 +13,8 @@
 //! exposure, noise). The render seed and the noise seed are derived from the same hash.
 
 use super::recipe::{Dist, Recipe, Span, RANDOM_CLASS};
-use crate::image_io::Image;
 use crate::geometry::yarn::PITCH;
+use crate::image_io::Image;
 use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, N_APPEARANCE, RADIUS_RANGE};
 use crate::pattern::WeavePattern;
 use crate::scene::{CameraSpec, LightRig, LightSpec, Projection, Scene};

@@ -207,8 +207,7 @@ mod tests {
     use crate::net::OutputSpec;
 
     fn spec() -> NetSpec {
-        let mut s =
-            NetSpec::new(16, vec![OutputSpec::continuous("x", 0.0, 1.0), OutputSpec::integer("n", 1, 7)]);
+        let mut s = NetSpec::new(16, vec![OutputSpec::continuous("x", 0.0, 1.0), OutputSpec::integer("n", 1, 7)]);
         (s.backbone, s.px_per_cell, s.cell_convs, s.hidden) = (vec![4, 8], 4, vec![8], 16);
         s
     }

@@ -22,6 +22,11 @@ pub const NOT_IDENTIFIABLE: f32 = 0.8;
 /// Error/baseline ratio from which an output counts as weakly identifiable.
 pub const WEAK: f32 = 0.5;
 
+/// One panel of the curves: area, title, y label, and the series (points, colour, name).
+type Panel<'a, DB> = (&'a DrawingArea<DB, plotters::coord::Shift>, &'a str, &'a str, Vec<Series<'a>>);
+/// One series of a panel: points, colour, legend name.
+type Series<'a> = (Vec<(f64, f64)>, RGBColor, &'a str);
+
 /// Statistics of one epoch.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EpochStats {
@@ -188,7 +193,8 @@ impl TrainReport {
         );
         let c = &self.cell_confusion;
         let _ = writeln!(w, "| true \\ read | warp on top | weft on top |\n|---|---:|---:|");
-        let _ = writeln!(w, "| warp on top | {} | {} |\n| weft on top | {} | {} |\n", c[0][0], c[0][1], c[1][0], c[1][1]);
+        let _ =
+            writeln!(w, "| warp on top | {} | {} |\n| weft on top | {} | {} |\n", c[0][0], c[0][1], c[1][0], c[1][1]);
         if !self.per_class.is_empty() {
             let _ = writeln!(w, "| dataset class | views | cells right | pattern exact |\n|---|---:|---:|---:|");
             for k in self.per_class.iter().filter(|k| k.views > 0) {
@@ -284,7 +290,7 @@ impl TrainReport {
             let ep = |f: &dyn Fn(&EpochStats) -> Option<f32>| -> Vec<(f64, f64)> {
                 self.epochs.iter().filter_map(|e| f(e).map(|v| (e.epoch as f64, v as f64))).collect()
             };
-            let panels: [(&DrawingArea<_, _>, &str, &str, Vec<(Vec<(f64, f64)>, RGBColor, &str)>); 2] = [
+            let panels: [Panel<'_, _>; 2] = [
                 (
                     &left,
                     "cell cross-entropy",
@@ -418,7 +424,10 @@ mod tests {
         assert!(md.contains("| r_e | 0.040 | 0.050 | 0.2000 |"), "{md}");
         assert!(md.contains("| ok |"));
         assert!(md.contains("Ply count `n_p` exact after rounding: **60.0%**"), "{md}");
-        assert!(md.contains("**Not identifiable from the image** (error ≥ 80% of the median baseline): alpha_s."), "{md}");
+        assert!(
+            md.contains("**Not identifiable from the image** (error ≥ 80% of the median baseline): alpha_s."),
+            "{md}"
+        );
         assert!(md.contains("| 4 | 0.2500 | 0.1750 | 0.3000 | 0.2000 | 90.0% | 40.0% |"), "{md}");
     }
 
