@@ -5,6 +5,7 @@
 use crate::image_io::Image;
 use crate::net::{cloth_targets, NetSpec, OutputSpec, PreEstimator, Sample, TrainConfig};
 use crate::params::ClothParams;
+use crate::pattern::WeavePattern;
 use crate::progress::Progress;
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
@@ -13,12 +14,12 @@ use std::path::{Path, PathBuf};
 /// Default location of the shipped model.
 pub const DEFAULT_MODEL: &str = "models/pre_estimator.safetensors";
 
-/// The network's regression outputs: [`crate::net::cloth_outputs`], one per parameter of the table
-/// in [`crate::params::PARAMS`] order, each with its Table-1 range. Training targets come from
+/// The network's regression outputs: [`crate::net::view_outputs`], the parameters the fit's view
+/// determines, each with its Table-1 range. Training targets come from
 /// [`crate::net::cloth_targets`] and a prediction is applied with
-/// [`crate::net::Prediction::apply_to`].
+/// [`crate::net::ViewPrediction::apply_to`].
 pub fn output_specs() -> Vec<OutputSpec> {
-    crate::net::cloth_outputs()
+    crate::net::view_outputs()
 }
 
 #[derive(Deserialize)]
@@ -28,6 +29,9 @@ struct LabelLine {
     sample_seed: u64,
     class_id: usize,
     cloth: ClothParams,
+    /// Absent in datasets made before the network read the fit's view.
+    #[serde(default)]
+    view_cells: Option<Vec<Vec<usize>>>,
 }
 
 /// A dataset folder written by `woven generate`: class names, samples and the recipe's SHA-256.
@@ -61,13 +65,23 @@ pub fn load_dataset(dir: &Path, progress: &dyn Progress) -> Result<(Vec<String>,
             if l.class_id >= names.len() {
                 bail!("labels.jsonl line {}: class_id {} out of range", k + 1, l.class_id);
             }
+            let Some(view_cells) = l.view_cells else {
+                bail!(
+                    "labels.jsonl line {}: no `view_cells`; this dataset predates the fit's-view recipe, regenerate it with `woven generate`",
+                    k + 1
+                );
+            };
             let path = dir.join("images").join(format!("{:06}.png", l.index));
             let img = Image::load(&path, 8)?;
             progress.advance(1);
+            let p: &WeavePattern = &l.cloth.pattern;
+            let pattern = (0..p.n_e()).map(|i| (0..p.n_a()).map(|j| p.get(i, j)).collect()).collect();
             Ok(Sample {
                 image: img.to_rgb32f(),
+                pattern,
+                view_cells,
                 class: l.class_id,
-                targets: cloth_targets(&l.cloth),
+                targets: cloth_targets(&l.cloth, &output_specs()).expect("view outputs are cloth parameters"),
                 seed: l.sample_seed,
             })
         })
@@ -84,11 +98,20 @@ pub fn load_dataset(dir: &Path, progress: &dyn Progress) -> Result<(Vec<String>,
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrainRecipe {
-    /// Network input side in pixels.
+    /// Side of the training views in pixels (the dataset's `image.size`).
     pub input_size: usize,
-    /// Backbone channels per block.
+    /// Channels of the pooled blocks (their number sets the pixels per cell: 2^len).
     #[serde(default)]
     pub backbone: Option<Vec<usize>>,
+    /// Channels of the convolutions at cell resolution.
+    #[serde(default)]
+    pub cell_convs: Option<Vec<usize>>,
+    /// Convolutions per pooled block.
+    #[serde(default)]
+    pub convs_per_block: Option<usize>,
+    /// Width of the parameter head.
+    #[serde(default)]
+    pub hidden: Option<usize>,
     /// Optimiser, schedule, epochs, etc.
     pub train: TrainConfig,
 }
@@ -160,12 +183,23 @@ pub fn train_model(opts: &TrainOptions, progress: &dyn Progress) -> Result<Train
         recipe.train.epochs = e;
     }
     let (classes, samples, recipe_hash) = load_dataset(&opts.data, progress)?;
-    let mut spec = NetSpec::new(recipe.input_size, classes, output_specs());
+    let mut spec = NetSpec::new(recipe.input_size, output_specs());
+    spec.classes = classes;
     if let Some(b) = &recipe.backbone {
         spec.backbone = b.clone();
+        spec.px_per_cell = 1 << b.len();
+    }
+    if let Some(c) = &recipe.cell_convs {
+        spec.cell_convs = c.clone();
+    }
+    if let Some(c) = recipe.convs_per_block {
+        spec.convs_per_block = c;
+    }
+    if let Some(h) = recipe.hidden {
+        spec.hidden = h;
     }
     progress.message(&format!(
-        "training on {} images ({} classes, {} outputs) in {}",
+        "training on {} views ({} dataset classes, {} outputs) in {}",
         samples.len(),
         spec.classes.len(),
         spec.outputs.len(),

@@ -174,8 +174,8 @@ fn noise_is_not_prepared_as_a_weave() {
 fn a_model_with_nan_weights_is_refused() {
     use woven::net::{NetSpec, OutputSpec};
     let d = tempfile::tempdir().unwrap();
-    let mut spec = NetSpec::new(16, vec!["a".into(), "b".into()], vec![OutputSpec::continuous("x", 0.0, 1.0)]);
-    spec.backbone = vec![4, 8];
+    let mut spec = NetSpec::new(16, vec![OutputSpec::continuous("x", 0.0, 1.0)]);
+    (spec.backbone, spec.px_per_cell) = (vec![4, 8], 4);
     spec.hidden = 8;
     let (vm, _) = woven::net::model::build(&spec, 1).unwrap();
     let good = d.path().join("good.safetensors");

@@ -1,10 +1,12 @@
 //! `woven train` and `woven predict`: the pre-estimator network.
 
 use super::progress::IndicatifProgress;
-use anyhow::{bail, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use woven::image_io::Image;
+use woven::net::infer::MAX_VIEW_CELLS;
+use woven::net::{read_view, PredictedOutput};
 use woven::pre::{load_model, train_model, TrainOptions, DEFAULT_MODEL};
 
 /// Arguments of `woven train`.
@@ -66,45 +68,101 @@ pub struct PredictArgs {
     /// Model weights.
     #[arg(long, default_value = DEFAULT_MODEL)]
     pub model: PathBuf,
+    /// The image holds exactly one repeat (like `woven fit --no-prep`): skip preparation; the grid
+    /// comes from --grid or is detected.
+    #[arg(long, conflicts_with = "view")]
+    pub one_repeat: bool,
+    /// Grid `NExNA` (weft rows × warp columns) of a --one-repeat image.
+    #[arg(long, requires = "one_repeat", value_parser = parse_grid)]
+    pub grid: Option<(usize, usize)>,
+    /// The image is already a view at the network's pixels per cell (a `woven generate` image):
+    /// print the reading of each cell of its grid.
+    #[arg(long)]
+    pub view: bool,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
-    /// Also time inference on one thread (mean over 50 predictions, after loading).
+    /// Also time inference on one thread (mean over 50 reads of a 4×4 repeat, after loading).
     #[arg(long)]
     pub timing: bool,
+}
+
+/// `NExNA` (also `x` or `×`), both sides in `1..=MAX_VIEW_CELLS`.
+fn parse_grid(s: &str) -> Result<(usize, usize), String> {
+    let parts: Vec<&str> = s.split(['x', 'X', '×']).collect();
+    if let [a, b] = parts[..] {
+        if let (Ok(a), Ok(b)) = (a.trim().parse::<usize>(), b.trim().parse::<usize>()) {
+            if (1..=MAX_VIEW_CELLS).contains(&a) && (1..=MAX_VIEW_CELLS).contains(&b) {
+                return Ok((a, b));
+            }
+        }
+    }
+    Err(format!("expected NExNA with sides in 1..={MAX_VIEW_CELLS}, e.g. 4x4"))
+}
+
+fn print_outputs(outputs: &[PredictedOutput]) {
+    println!("{:<10} {:>9} {:>9}", "parameter", "value", "± σ");
+    for o in outputs {
+        if o.integer {
+            println!("{:<10} {:>9} {:>9.2}", o.name, o.value.round() as i64, o.sigma);
+        } else {
+            println!("{:<10} {:>9.4} {:>9.4}", o.name, o.value, o.sigma);
+        }
+    }
 }
 
 /// `woven predict`.
 pub fn run_predict(a: &PredictArgs) -> Result<()> {
     let model = load_model(&a.model)?;
     let img = Image::load(&a.image, 8)?;
-    let p = model.predict(&img.to_rgb32f())?;
-    // Loading refuses non-finite weights; this catches anything else that would print NaN.
-    if let Some(o) = p.outputs.iter().find(|o| !o.value.is_finite()) {
-        bail!("the model predicted {} = {} for {}; the model file is unusable", o.name, o.value, a.image.display());
-    }
-    if p.class_probs.iter().any(|x| !x.is_finite()) {
-        bail!(
-            "the model predicted non-finite class probabilities for {}; the model file is unusable",
-            a.image.display()
-        );
-    }
     if a.timing {
         let ms = woven::net::bench_inference(&model, 50);
-        eprintln!("inference: {ms:.2} ms per image on 1 thread ({} px input)", model.spec().input_size);
+        eprintln!("inference: {ms:.2} ms per read of a 4×4 repeat on 1 thread");
     }
-    if a.json {
-        println!("{}", serde_json::to_string_pretty(&p)?);
+    if a.view {
+        let p = model.predict(&img.to_rgb32f())?;
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(&p)?);
+            return Ok(());
+        }
+        println!("cells of the view (rows from the top; 1 = weft on top, 0 = warp on top):");
+        for row in &p.cell_logits {
+            println!("  {}", row.iter().map(|&l| if l > 0.0 { '1' } else { '0' }).collect::<String>());
+        }
+        print_outputs(&p.outputs);
         return Ok(());
     }
-    println!("pattern class: {} (p = {:.3})", p.class_name, p.class_probs[p.class]);
-    println!("{:<12} {:>10}", "parameter", "value");
-    for o in &p.outputs {
-        if o.integer {
-            println!("{:<12} {:>10}", o.name, o.value.round() as i64);
-        } else {
-            println!("{:<12} {:>10.4}", o.name, o.value);
-        }
+    let (target, n_e, n_a) = if a.one_repeat {
+        let (n_e, n_a) = match a.grid {
+            Some(g) => g,
+            None => woven::fit::target::detect_grid(&img)
+                .with_context(|| format!("no yarn grid found in {}; give it with --grid NExNA", a.image.display()))?,
+        };
+        (img, n_e, n_a)
+    } else {
+        let p = woven::prep::prepare(&img.to_rgb32f(), &woven::prep::PrepOptions::default())
+            .context("preparing the input (use --one-repeat for a clean one-repeat crop)")?;
+        let reg = Image::from_rgb32f(&p.regularized);
+        (reg.crop(p.crop.x, p.crop.y, p.crop.w, p.crop.h), p.n_e, p.n_a)
+    };
+    let v = read_view(&model, &target, n_e, n_a)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
     }
+    let rows: Vec<String> = v.cells().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
+    println!("pattern read ({n_e}×{n_a} cells; row i = weft i, 1 = weft over warp): {}", rows.join("/"));
+    let weakest = (0..n_e)
+        .flat_map(|i| (0..n_a).map(move |j| (i, j)))
+        .map(|(i, j)| (v.probability(i, j).max(1.0 - v.probability(i, j)), i, j))
+        .min_by(|x, y| x.0.total_cmp(&y.0));
+    if let Some((p, i, j)) = weakest {
+        println!("least certain cell: weft {i}, warp {j} (p = {p:.3})");
+    }
+    match v.pattern() {
+        Ok(p) => println!("as a weave: {p} ({}×{} minimum repeat)", p.n_e(), p.n_a()),
+        Err(e) => println!("as a weave: none ({e})"),
+    }
+    print_outputs(&v.outputs);
     Ok(())
 }

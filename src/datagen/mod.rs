@@ -13,4 +13,4 @@ pub mod sheet;
 pub use generate::{generate, GenerateOptions, Interrupted, Manifest, Summary};
 pub use merge::{merge, MergeSummary, ShardManifest};
 pub use recipe::{Dist, PatternClass, Prior, Recipe, Span};
-pub use sample::{target_names, Label, NoiseSpec, Sample};
+pub use sample::{target_names, view_cell_map, Label, NoiseSpec, Sample};

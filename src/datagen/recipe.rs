@@ -5,6 +5,7 @@
 
 use crate::params::{APPEARANCE_RANGES, NF_RANGE, NP_RANGE, RADIUS_RANGE};
 use crate::pattern::{WeavePattern, PRESETS};
+use crate::scene::LightRig;
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -52,14 +53,17 @@ impl Span {
     }
 }
 
-/// Image size and sampling.
+/// Image size and sampling: the fit's view at a fixed number of pixels per pattern cell.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ImageSpec {
-    /// Square image side in pixels, [16, 4096].
+    /// Square image side in pixels, [16, 4096], a multiple of `px_per_cell`.
     pub size: u32,
     /// Samples per pixel, [1, 4096].
     pub spp: u32,
+    /// Pixels per pattern cell (yarn pitch), [2, 64]: the image shows `size / px_per_cell` cells
+    /// across, the pattern's repeat tiled as often as fits.
+    pub px_per_cell: u32,
 }
 
 /// Which weave patterns appear, and how often.
@@ -126,44 +130,34 @@ pub struct Priors {
     pub g_f: Prior,
 }
 
-/// Camera variation.
+/// What preparation leaves of the camera: the fit's view is an orthographic top-down view of the
+/// rectified repeat, so only residuals vary.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraPrior {
-    /// Pattern repeats across the image width.
-    pub tiles: Span,
-    /// Cap on yarns across the image (`tiles * n_a`), so large repeats stay resolvable, [1, 512].
-    pub max_yarns_across: f64,
-    /// In-plane rotation, degrees, uniform in `[-rotation_deg, rotation_deg]`, [0, 180].
+    /// Sub-cell phase: the cell grid is shifted against the yarns by up to this fraction of a
+    /// cell in x and in y (uniform), [0, 0.45]. A whole-cell shift of the pattern is always random.
+    pub phase_cells: f64,
+    /// Residual in-plane rotation, degrees, uniform in `[-rotation_deg, rotation_deg]`, [0, 10].
     pub rotation_deg: f64,
-    /// Tilt away from the normal, degrees, within [0, 60].
-    pub tilt_deg: Span,
-    /// Probability of a perspective (pinhole) camera instead of orthographic, [0, 1].
-    pub perspective_share: f64,
-    /// Vertical field of view of the perspective camera, degrees, within [5, 90].
-    pub fov_deg: Span,
-    /// Random phase: offset the view centre by a uniform fraction of a repeat in x and y.
-    pub random_offset: bool,
+    /// Gaussian blur σ in pixels (lens, focus, and preparation's own blur), within [0, 8].
+    pub blur_px: Span,
 }
 
-/// Light-rig variation (white lights; the rig of `LightRig::default_rig` with sampled strengths).
+/// Light-rig variation: one of the named rigs of `LightRig` with jittered strengths and front
+/// direction.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LightPrior {
+    /// Named rigs drawn with equal probability (`LightRig::NAMES`: default, front, back, both, sides).
+    pub rigs: Vec<String>,
+    /// Multiplier of each light's irradiance (drawn per light), within [0, 100].
+    pub strength: Span,
     /// Ambient radiance (grey), within [0, 100].
     pub ambient: Span,
-    /// Front light irradiance, within [0, 1000].
-    pub front: Span,
-    /// Elevation of the front light above the cloth plane, degrees, within [5, 90]; azimuth is uniform.
+    /// Elevation of the front light above the cloth plane, degrees, within [5, 90]; its azimuth
+    /// is uniform.
     pub front_elevation_deg: Span,
-    /// Irradiance of each of the two side lights (sampled independently), within [0, 1000].
-    pub side: Span,
-    /// Back light irradiance when on, within [0, 1000].
-    pub back: Span,
-    /// Probability that the back light is on, [0, 1].
-    pub back_probability: f64,
-    /// Angular radius of the back light (visible through gaps), degrees, [0, 60].
-    pub back_cone_deg: f64,
 }
 
 /// Sensor noise added to the linear image (seeded per image).
@@ -191,7 +185,7 @@ pub struct Recipe {
     /// Priors of Table 1.
     #[serde(default)]
     pub priors: Priors,
-    /// Camera variation.
+    /// What preparation leaves of the camera (phase, rotation, blur).
     pub camera: CameraPrior,
     /// Light variation.
     pub lights: LightPrior,
@@ -221,7 +215,7 @@ impl Default for Recipe {
         Recipe {
             count: 2000,
             seed: 1,
-            image: ImageSpec { size: 128, spp: 4 },
+            image: ImageSpec { size: 64, spp: 4, px_per_cell: 8 },
             patterns: PatternSpec {
                 presets: PRESETS.iter().map(|s| s.to_string()).collect(),
                 rotations: true,
@@ -230,23 +224,12 @@ impl Default for Recipe {
                 random_max_side: 8,
             },
             priors: Priors::default(),
-            camera: CameraPrior {
-                tiles: Span::uniform(1.5, 4.0),
-                max_yarns_across: 16.0,
-                rotation_deg: 5.0,
-                tilt_deg: Span::uniform(0.0, 8.0),
-                perspective_share: 0.5,
-                fov_deg: Span::uniform(20.0, 40.0),
-                random_offset: true,
-            },
+            camera: CameraPrior { phase_cells: 0.25, rotation_deg: 2.0, blur_px: Span::uniform(0.0, 0.8) },
             lights: LightPrior {
+                rigs: ["default", "front", "back", "both"].map(String::from).to_vec(),
+                strength: Span { range: [0.7, 1.4], dist: Dist::Loguniform },
                 ambient: Span::uniform(0.0, 0.3),
-                front: Span::uniform(2.0, 6.0),
                 front_elevation_deg: Span::uniform(50.0, 85.0),
-                side: Span::uniform(0.0, 1.5),
-                back: Span::uniform(0.5, 4.0),
-                back_probability: 0.6,
-                back_cone_deg: 45.0,
             },
             exposure: Span { range: [0.6, 1.6], dist: Dist::Loguniform },
             noise: NoisePrior { read_sigma: Span::uniform(0.0, 0.01), shot_gain: Span::uniform(0.0, 0.002) },
@@ -361,6 +344,14 @@ impl Recipe {
         check_scalar("count", self.count as f64, 1.0, 1e7)?;
         check_scalar("image.size", self.image.size as f64, 16.0, 4096.0)?;
         check_scalar("image.spp", self.image.spp as f64, 1.0, 4096.0)?;
+        check_scalar("image.px_per_cell", self.image.px_per_cell as f64, 2.0, 64.0)?;
+        if !self.image.size.is_multiple_of(self.image.px_per_cell) {
+            bail!(
+                "recipe field `image.size`: {} is not a multiple of `image.px_per_cell` = {} (the view is whole cells)",
+                self.image.size,
+                self.image.px_per_cell
+            );
+        }
         let p = &self.patterns;
         for (k, name) in p.presets.iter().enumerate() {
             if WeavePattern::preset(name).is_err() {
@@ -389,20 +380,21 @@ impl Recipe {
             check_span(&field, &Span { range: prior.range.unwrap_or([min, max]), dist: prior.dist }, min, max)?;
         }
         let c = &self.camera;
-        check_span("camera.tiles", &c.tiles, 0.25, 64.0)?;
-        check_scalar("camera.max_yarns_across", c.max_yarns_across, 1.0, 512.0)?;
-        check_scalar("camera.rotation_deg", c.rotation_deg, 0.0, 180.0)?;
-        check_span("camera.tilt_deg", &c.tilt_deg, 0.0, 60.0)?;
-        check_scalar("camera.perspective_share", c.perspective_share, 0.0, 1.0)?;
-        check_span("camera.fov_deg", &c.fov_deg, 5.0, 90.0)?;
+        check_scalar("camera.phase_cells", c.phase_cells, 0.0, 0.45)?;
+        check_scalar("camera.rotation_deg", c.rotation_deg, 0.0, 10.0)?;
+        check_span("camera.blur_px", &c.blur_px, 0.0, 8.0)?;
         let l = &self.lights;
+        if l.rigs.is_empty() {
+            bail!("recipe field `lights.rigs`: give at least one rig ({})", LightRig::NAMES.join(", "));
+        }
+        for (k, name) in l.rigs.iter().enumerate() {
+            if LightRig::named(name).is_none() {
+                bail!("recipe field `lights.rigs[{k}]`: unknown rig `{name}`; known: {}", LightRig::NAMES.join(", "));
+            }
+        }
+        check_span("lights.strength", &l.strength, 0.0, 100.0)?;
         check_span("lights.ambient", &l.ambient, 0.0, 100.0)?;
-        check_span("lights.front", &l.front, 0.0, 1000.0)?;
         check_span("lights.front_elevation_deg", &l.front_elevation_deg, 5.0, 90.0)?;
-        check_span("lights.side", &l.side, 0.0, 1000.0)?;
-        check_span("lights.back", &l.back, 0.0, 1000.0)?;
-        check_scalar("lights.back_probability", l.back_probability, 0.0, 1.0)?;
-        check_scalar("lights.back_cone_deg", l.back_cone_deg, 0.0, 60.0)?;
         check_span("exposure", &self.exposure, 1e-4, 1e4)?;
         check_span("noise.read_sigma", &self.noise.read_sigma, 0.0, 1.0)?;
         check_span("noise.shot_gain", &self.noise.shot_gain, 0.0, 1.0)?;

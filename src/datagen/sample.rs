@@ -1,11 +1,19 @@
 //! Drawing one dataset sample — cloth, scene, class and sensor noise — from the recipe.
 //!
+//! Every image is *the fit's view* (src/fit/target.rs `fit_scene`): an orthographic top-down
+//! view at `image.px_per_cell` pixels per pattern cell, the repeat tiled across the
+//! `image.size` square, with what preparation leaves behind: a random whole-cell shift, a
+//! sub-cell phase, a residual rotation, blur, noise, exposure and one of the named light rigs
+//! with jittered strengths. [`view_cell_map`] gives, for each cell of the view's grid, the pattern
+//! cell it shows: the per-cell over/under labels of the network.
+//!
 //! A sample depends only on (recipe, dataset seed, index): its random numbers come from a
 //! `StdRng` seeded with a hash of the seed and the index, and are drawn in a fixed order
 //! (class, pattern, `n_p`, `n_f`, `r_e`, `r_a`, the 30 appearance scalars, camera, lights,
 //! exposure, noise). The render seed and the noise seed are derived from the same hash.
 
 use super::recipe::{Dist, Recipe, Span, RANDOM_CLASS};
+use crate::geometry::yarn::PITCH;
 use crate::image_io::Image;
 use crate::params::{Appearance, ClothParams, APPEARANCE_RANGES, NF_RANGE, NP_RANGE, N_APPEARANCE, RADIUS_RANGE};
 use crate::pattern::WeavePattern;
@@ -15,10 +23,14 @@ use rand::prelude::*;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
-/// Sensor noise of one image: Gaussian read noise plus signal-dependent shot noise in linear space.
+/// Degradation of one image after rendering: a Gaussian blur (lens, focus, preparation's own
+/// blur), then Gaussian read noise plus signal-dependent shot noise in linear space.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NoiseSpec {
+    /// Gaussian blur σ in pixels, applied before the noise (0: none).
+    #[serde(default)]
+    pub blur_px: f32,
     /// Read-noise standard deviation (linear units).
     pub read_sigma: f32,
     /// Shot-noise gain: variance `gain · v` at linear value `v`.
@@ -28,8 +40,12 @@ pub struct NoiseSpec {
 }
 
 impl NoiseSpec {
-    /// Add the noise to a linear image (deterministic from `seed`); clamps at 0.
+    /// Blur, then add the noise to a linear image (deterministic from `seed`); clamps at 0.
     pub fn apply(&self, img: &mut Image) {
+        // Below 0.05 px a Gaussian moves less than 1e-4 of a pixel's value to its neighbours.
+        if self.blur_px > 0.05 {
+            *img = Image::from_rgb32f(&crate::prep::image_ops::blur_rgb(&img.to_rgb32f(), self.blur_px));
+        }
         if self.read_sigma == 0.0 && self.shot_gain == 0.0 {
             return;
         }
@@ -62,8 +78,50 @@ pub struct Sample {
     pub class_id: usize,
     /// Pattern class name.
     pub class_name: String,
-    /// Sensor noise.
+    /// Blur and sensor noise.
     pub noise: NoiseSpec,
+    /// Pixels per pattern cell of the view.
+    pub px_per_cell: u32,
+}
+
+impl Sample {
+    /// The pattern cell each cell of the view's grid shows ([`view_cell_map`]).
+    pub fn view_cells(&self) -> Vec<Vec<usize>> {
+        view_cell_map(&self.scene, self.cloth.pattern.n_e(), self.cloth.pattern.n_a(), self.px_per_cell)
+    }
+}
+
+/// For each cell of the view's grid (`height / px_per_cell` rows from the top, `width /
+/// px_per_cell` columns), the pattern cell `i·n_a + j` (weft `i`, warp `j`) under the grid cell's
+/// centre pixel, for an orthographic, untilted `scene` of a pattern with `n_e × n_a` cells. The
+/// mapping is `Camera::ray`'s (src/render/camera.rs) with the yarn layout of docs/design.md §0:
+/// weft `i` covers world `y ∈ [10i, 10(i+1))`, warp `j` world `x ∈ [10j, 10(j+1))`, repeated.
+pub fn view_cell_map(scene: &Scene, n_e: usize, n_a: usize, px_per_cell: u32) -> Vec<Vec<usize>> {
+    let (w, h) = (scene.width as f64, scene.height as f64);
+    let cam = &scene.camera;
+    let (tile_x, tile_y) = (n_a as f64 * PITCH as f64, n_e as f64 * PITCH as f64);
+    let half_w = 0.5 * cam.tiles as f64 * tile_x;
+    let half_h = half_w * h / w;
+    let (sin, cos) = (cam.rotation_deg as f64).to_radians().sin_cos();
+    let centre = [cam.offset[0] as f64 * tile_x, cam.offset[1] as f64 * tile_y];
+    let c = px_per_cell as f64;
+    let (rows, cols) = ((scene.height / px_per_cell) as usize, (scene.width / px_per_cell) as usize);
+    (0..rows)
+        .map(|r| {
+            (0..cols)
+                .map(|k| {
+                    let u = ((k as f64 + 0.5) * c / w) * 2.0 - 1.0;
+                    let v = 1.0 - ((r as f64 + 0.5) * c / h) * 2.0;
+                    // right = R·x̂ = (cos, sin), up = R·ŷ = (−sin, cos).
+                    let x = centre[0] + cos * u * half_w - sin * v * half_h;
+                    let y = centre[1] + sin * u * half_w + cos * v * half_h;
+                    let j = (x / PITCH as f64).floor().rem_euclid(n_a as f64) as usize;
+                    let i = (y / PITCH as f64).floor().rem_euclid(n_e as f64) as usize;
+                    i.min(n_e - 1) * n_a + j.min(n_a - 1)
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// SplitMix64 finaliser: a well-mixed 64-bit hash step.
@@ -156,58 +214,56 @@ impl Recipe {
         let cloth =
             ClothParams { pattern, n_p, n_f, r_e, r_a, appearance: Appearance::from_slice(&v), body_texture: None };
 
-        // Camera.
+        // Camera: the fit's orthographic top-down view (`fit_scene`) at `px_per_cell` pixels per
+        // cell, `cells` cells across. The view centre sits on a cell corner, moved by a random
+        // whole-cell shift (so the network sees no fixed origin) plus the sub-cell phase.
         let c = &self.camera;
-        let mut tiles = draw(&mut rng, &c.tiles);
-        let across = tiles * cloth.pattern.n_a().max(cloth.pattern.n_e()) as f64;
-        if across > c.max_yarns_across {
-            tiles *= c.max_yarns_across / across;
+        let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+        let cells = (self.image.size / self.image.px_per_cell) as f64;
+        let shift = [rng.random_range(0..n_a) as f64, rng.random_range(0..n_e) as f64];
+        let mut phase = [0.0f64; 2];
+        for p in phase.iter_mut() {
+            *p = rng.random_range(-1.0..=1.0) * c.phase_cells;
         }
-        let tiles = (tiles as f32).clamp(0.25, 64.0);
         let rotation_deg = (rng.random_range(-1.0..=1.0) * c.rotation_deg) as f32;
-        let tilt_deg = draw_f32(&mut rng, &c.tilt_deg);
-        let perspective = rng.random_bool(c.perspective_share.clamp(0.0, 1.0));
-        let fov_deg = draw_f32(&mut rng, &c.fov_deg);
-        let offset =
-            if c.random_offset { [rng.random_range(0.0f32..1.0), rng.random_range(0.0f32..1.0)] } else { [0.0, 0.0] };
+        let blur_px = draw_f32(&mut rng, &c.blur_px);
+        // `Camera::new`: the view centre is `offset · repeat` in world units (pitch 10).
+        let centre = |k: usize, n: usize| (cells / 2.0 + shift[k] + phase[k]) / n as f64;
         let camera = CameraSpec {
-            projection: if perspective { Projection::Perspective } else { Projection::Orthographic },
-            tiles,
+            projection: Projection::Orthographic,
+            tiles: (cells / n_a as f64) as f32,
             rotation_deg,
-            // Tilt only with the pinhole camera: the orthographic camera starts tilted rays below the
-            // cloth at the low edge of the frame (a band of background; reported to the renderer's owner).
-            tilt_deg: if perspective { tilt_deg } else { 0.0 },
-            fov_deg: if perspective { fov_deg } else { CameraSpec::default().fov_deg },
-            offset,
+            tilt_deg: 0.0,
+            fov_deg: CameraSpec::default().fov_deg,
+            offset: [centre(0, n_a) as f32, centre(1, n_e) as f32],
         };
 
-        // Lights: ambient + front (random azimuth, sampled elevation) + two sides + optional back.
+        // Lights: a named rig, each light's irradiance times a drawn strength; the front light
+        // (where present) gets a random azimuth and a drawn elevation.
         let l = &self.lights;
-        let grey = |e: f32| [e, e, e];
+        let rig_name = &l.rigs[rng.random_range(0..l.rigs.len())];
+        let mut rig = LightRig::named(rig_name).expect("recipe validation checks the rig names");
         let ambient = draw_f32(&mut rng, &l.ambient);
-        let front = draw_f32(&mut rng, &l.front);
+        rig.ambient = [ambient; 3];
         let elev = draw(&mut rng, &l.front_elevation_deg).to_radians();
         let azim = rng.random_range(0.0..std::f64::consts::TAU);
-        let dir = [(elev.cos() * azim.cos()) as f32, (elev.cos() * azim.sin()) as f32, elev.sin() as f32];
-        let left = draw_f32(&mut rng, &l.side);
-        let right = draw_f32(&mut rng, &l.side);
-        let back_on = rng.random_bool(l.back_probability.clamp(0.0, 1.0));
-        let back = draw_f32(&mut rng, &l.back);
-        let light = |name: &str, direction: [f32; 3], e: f32, cone: f32| LightSpec::Directional {
-            name: name.into(),
-            direction,
-            irradiance: grey(e),
-            cone_deg: cone,
-        };
-        let mut lights = vec![light("front", dir, front, 0.0), light("left", [-1.0, 0.2, 0.55], left, 0.0)];
-        lights.push(light("right", [1.0, -0.2, 0.55], right, 0.0));
-        if back_on {
-            lights.push(light("back", [0.0, 0.0, -1.0], back, l.back_cone_deg as f32));
+        let front_dir = [(elev.cos() * azim.cos()) as f32, (elev.cos() * azim.sin()) as f32, elev.sin() as f32];
+        for light in rig.lights.iter_mut() {
+            let k = draw_f32(&mut rng, &l.strength);
+            match light {
+                LightSpec::Directional { name, direction, irradiance, .. } => {
+                    *irradiance = irradiance.map(|e| e * k);
+                    if name == "front" {
+                        *direction = front_dir;
+                    }
+                }
+                LightSpec::Point { intensity, .. } => *intensity = intensity.map(|e| e * k),
+            }
         }
-        let rig = LightRig { ambient: grey(ambient), lights };
 
         let exposure = draw_f32(&mut rng, &self.exposure);
         let noise = NoiseSpec {
+            blur_px,
             read_sigma: draw_f32(&mut rng, &self.noise.read_sigma),
             shot_gain: draw_f32(&mut rng, &self.noise.shot_gain),
             seed: mix64(sseed ^ 0x6E6F_6973_6500_0002),
@@ -221,6 +277,7 @@ impl Recipe {
             lights: rig,
             exposure,
         };
+
         cloth.validate().map_err(|e| anyhow::anyhow!("sample {index}: drawn cloth is invalid: {e}"))?;
         scene.validate().map_err(|e| anyhow::anyhow!("sample {index}: drawn scene is invalid: {e}"))?;
         Ok(Sample {
@@ -232,6 +289,7 @@ impl Recipe {
             class_id: class.id,
             class_name: class.name.clone(),
             noise,
+            px_per_cell: self.image.px_per_cell,
         })
     }
 }
@@ -278,8 +336,11 @@ pub struct Label {
     pub cloth: ClothParams,
     /// Full scene.
     pub scene: Scene,
-    /// Sensor noise added after rendering.
+    /// Blur and sensor noise added after rendering.
     pub noise: NoiseSpec,
+    /// The pattern cell `i·n_a + j` (weft `i`, warp `j`) each cell of the view's grid shows, rows
+    /// from the top ([`view_cell_map`]): the cell's over/under label is `pattern[i][j]`.
+    pub view_cells: Vec<Vec<usize>>,
     /// Range-normalised targets in `[0,1]`, order given by [`target_names`] (also in the manifest).
     pub targets: Vec<f32>,
 }
@@ -298,6 +359,7 @@ impl Label {
             cloth: s.cloth.clone(),
             scene: s.scene.clone(),
             noise: s.noise.clone(),
+            view_cells: s.view_cells(),
             targets: normalised_targets(&s.cloth),
         }
     }

@@ -1,19 +1,21 @@
-//! Loading a trained model and predicting with it.
+//! Loading a trained model and predicting with it; [`read_view`], the fit's entry point.
 //!
 //! A model file is a safetensors file whose metadata holds the [`NetSpec`] (`woven.netspec`),
 //! the training metrics (`woven.metrics`, optional), a format tag and a checksum of the tensor
 //! bytes (`woven.checksum`, FNV-1a over the tensors sorted by name), so flipped bytes anywhere
 //! in the file are detected, not just in the header.
 
-use super::model::{self, probabilities, var_shapes, PreNet};
+use super::model::{self, var_shapes, PreNet};
 use super::report::TrainReport;
-use super::{check_image, preprocess, NetError, NetSpec, META_METRICS, META_SPEC};
+use super::{check_image, preprocess, NetError, NetSpec, INPUT_CHANNELS, META_METRICS, META_SPEC};
+use crate::image_io::Image;
+use crate::math::resample::box_resample;
 use crate::params::{ClothParams, ParamInfo, ParamKind, PARAMS};
+use crate::pattern::WeavePattern;
 use anyhow::{Context, Result};
 use candle_core::{Device, Tensor};
 use candle_nn::VarMap;
 use image::{Rgb, Rgb32FImage};
-use rayon::prelude::*;
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 use serde::{Deserialize, Serialize};
@@ -22,30 +24,51 @@ use std::path::Path;
 use std::time::Instant;
 
 const META_CHECKSUM: &str = "woven.checksum";
-const BATCH: usize = 32;
 
-/// One de-normalised output of a prediction.
+/// Most cells a side [`read_view`] accepts (a 64-cell repeat is a 512 px view).
+pub const MAX_VIEW_CELLS: usize = 64;
+
+/// One de-normalised output of a prediction, with its confidence.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PredictedOutput {
-    /// Parameter name from the spec.
+    /// Parameter name from the spec (a [`ParamInfo::name`] for cloth parameters).
     pub name: String,
     /// Value in the parameter's range (rounded for integer outputs).
     pub value: f64,
-    /// The network's raw output in `[0,1]`.
+    /// The network's mean in `[0,1]` (fraction of the range).
     pub normalised: f32,
+    /// Predicted standard deviation in the parameter's units: the network's confidence. An
+    /// output it cannot read from the picture gets about the spread of the training prior (≈ 0.29
+    /// of the range for a uniform prior).
+    pub sigma: f64,
+    /// The same as a fraction of the range.
+    pub sigma_normalised: f32,
     /// Whether the output is integer-valued.
     pub integer: bool,
 }
 
-/// What the pre-estimator predicts for one image.
+/// Set the parameters of `cloth` that `outputs` has a value for (by table name) and `keep`
+/// selects, each clamped into its Table-1 range (a count rounded first); outputs that are not
+/// finite are skipped. The pattern and the body texture are untouched.
+fn apply_outputs(outputs: &[PredictedOutput], cloth: &mut ClothParams, keep: impl Fn(&ParamInfo) -> bool) {
+    for p in PARAMS.iter().filter(|p| keep(p)) {
+        let Some(x) = outputs.iter().find(|o| o.name == p.name).map(|o| o.value).filter(|x| x.is_finite()) else {
+            continue;
+        };
+        let v = match p.kind {
+            ParamKind::Integer => (x.round() as u32).clamp(p.min as u32, p.max as u32) as f32,
+            _ => (x as f32).clamp(p.min, p.max),
+        };
+        cloth.set(p.index, v);
+    }
+}
+
+/// What the network reads from one image taken as a view at its pixels per cell.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Prediction {
-    /// Most probable class (0 when the spec has no classes).
-    pub class: usize,
-    /// Its name (empty when the spec has no classes).
-    pub class_name: String,
-    /// Softmax probability of every class, in spec order.
-    pub class_probs: Vec<f32>,
+    /// Over/under logit of each cell of the image's grid (rows from the top, `px_per_cell`
+    /// squares of the centred crop to whole cells): > 0 means the horizontal yarn (weft) is on top.
+    pub cell_logits: Vec<Vec<f32>>,
     /// Every output, in spec order.
     pub outputs: Vec<PredictedOutput>,
 }
@@ -60,14 +83,55 @@ impl Prediction {
     /// `keep` selects, each clamped into its Table-1 range (a count rounded first); outputs that
     /// are not finite are skipped. The pattern and the body texture are untouched.
     pub fn apply_to(&self, cloth: &mut ClothParams, keep: impl Fn(&ParamInfo) -> bool) {
-        for p in PARAMS.iter().filter(|p| keep(p)) {
-            let Some(x) = self.get(p.name).filter(|x| x.is_finite()) else { continue };
-            let v = match p.kind {
-                ParamKind::Integer => (x.round() as u32).clamp(p.min as u32, p.max as u32) as f32,
-                _ => (x as f32).clamp(p.min, p.max),
-            };
-            cloth.set(p.index, v);
+        apply_outputs(&self.outputs, cloth, keep)
+    }
+}
+
+/// What the network reads from the fit's target ([`read_view`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewPrediction {
+    /// `cell_logits[i][j]`: logit that weft `i` lies over warp `j` (`P[i][j] = 1`), `n_e` rows of
+    /// `n_a`; the mean over every place the tiled view shows that cell. `σ(logit)` is the
+    /// probability; |logit| is the confidence (|logit| > 4.6 is 99 %).
+    pub cell_logits: Vec<Vec<f32>>,
+    /// The parameters, each with its predicted standard deviation, in spec order.
+    pub outputs: Vec<PredictedOutput>,
+}
+
+impl ViewPrediction {
+    /// The value of the output called `name`.
+    pub fn get(&self, name: &str) -> Option<f64> {
+        self.outputs.iter().find(|o| o.name == name).map(|o| o.value)
+    }
+
+    /// The output called `name`, with its confidence.
+    pub fn output(&self, name: &str) -> Option<&PredictedOutput> {
+        self.outputs.iter().find(|o| o.name == name)
+    }
+
+    /// Probability that weft `i` lies over warp `j`.
+    pub fn probability(&self, i: usize, j: usize) -> f32 {
+        1.0 / (1.0 + (-self.cell_logits[i][j]).exp())
+    }
+
+    /// The pattern read (each cell by the sign of its logit), as the rows `P[i][j]`.
+    pub fn cells(&self) -> Vec<Vec<bool>> {
+        self.cell_logits.iter().map(|r| r.iter().map(|&l| l > 0.0).collect()).collect()
+    }
+
+    /// The pattern read, reduced to its minimum repeat; an error when the reading is not a weave
+    /// (it has a yarn that never changes sides, or is all over / all under).
+    pub fn pattern(&self) -> Result<WeavePattern> {
+        let p = WeavePattern::from_rows(&self.cells())?;
+        if p.has_unbound_yarn() {
+            anyhow::bail!("the network read a pattern with a floating yarn ({p}); it is not a weave");
         }
+        Ok(p)
+    }
+
+    /// Set the parameters of `cloth` this prediction has (see [`Prediction::apply_to`]).
+    pub fn apply_to(&self, cloth: &mut ClothParams, keep: impl Fn(&ParamInfo) -> bool) {
+        apply_outputs(&self.outputs, cloth, keep)
     }
 }
 
@@ -177,81 +241,125 @@ impl PreEstimator {
         self.metrics.as_ref()
     }
 
-    /// Predict class and outputs for one linear-RGB image (any size ≥ 8 px, finite values).
+    /// Read one linear-RGB image taken as a view at the network's pixels per cell (any size of
+    /// at least one cell, the centred crop to whole cells is used; finite values).
     pub fn predict(&self, img: &Rgb32FImage) -> Result<Prediction, NetError> {
         check_image(img)?;
-        let s = self.spec.input_size;
-        let x = Tensor::from_vec(preprocess(img, &self.spec), (1, 3, s, s), &Device::Cpu)?;
-        Ok(self.run(&x)?.pop().expect("one prediction per image"))
-    }
-
-    /// Predict for several images (preprocessed in parallel, run in batches of 32).
-    pub fn predict_batch(&self, imgs: &[Rgb32FImage]) -> Result<Vec<Prediction>, NetError> {
-        for (i, img) in imgs.iter().enumerate() {
-            check_image(img).map_err(|e| NetError::BadImage(format!("image {i}: {e}")))?;
+        let ppc = self.spec.px_per_cell;
+        if (img.width() as usize) < ppc || (img.height() as usize) < ppc {
+            return Err(NetError::BadImage(format!(
+                "image is {}×{} px, smaller than one cell ({ppc} px)",
+                img.width(),
+                img.height()
+            )));
         }
-        let s = self.spec.input_size;
-        let mut out = Vec::with_capacity(imgs.len());
-        for chunk in imgs.chunks(BATCH) {
-            let pix: Vec<Vec<f32>> = chunk.par_iter().map(|im| preprocess(im, &self.spec)).collect();
-            let x = Tensor::from_vec(pix.concat(), (chunk.len(), 3, s, s), &Device::Cpu)?;
-            out.extend(self.run(&x)?);
-        }
-        Ok(out)
-    }
-
-    fn run(&self, x: &Tensor) -> Result<Vec<Prediction>, NetError> {
-        let b = x.dim(0)?;
-        let o = self.net.forward(x)?;
-        let probs = match &o.logits {
-            Some(l) => probabilities(l)?.to_vec2::<f32>()?,
-            None => vec![Vec::new(); b],
-        };
-        let vals = match &o.values {
-            Some(v) => v.to_vec2::<f32>()?,
-            None => vec![Vec::new(); b],
-        };
-        Ok(probs
-            .into_iter()
-            .zip(vals)
-            .map(|(p, v)| {
-                let class = p.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |(i, _)| i);
-                Prediction {
-                    class,
-                    class_name: self.spec.classes.get(class).cloned().unwrap_or_default(),
-                    class_probs: p,
-                    outputs: self
-                        .spec
-                        .outputs
-                        .iter()
-                        .zip(v)
-                        .map(|(os, t)| PredictedOutput {
+        let (x, w, h) = preprocess(img, ppc);
+        let x = Tensor::from_vec(x, (1, INPUT_CHANNELS, h, w), &Device::Cpu)?;
+        let o = self.net.forward(&x)?;
+        let cell_logits = o.cell_logits.squeeze(0)?.to_vec2::<f32>()?;
+        let outputs = match (&o.mean, &o.log_var) {
+            (Some(m), Some(s)) => {
+                let (m, s) = (m.squeeze(0)?.to_vec1::<f32>()?, s.squeeze(0)?.to_vec1::<f32>()?);
+                self.spec
+                    .outputs
+                    .iter()
+                    .zip(m.iter().zip(&s))
+                    .map(|(os, (&t, &lv))| {
+                        let sd = (0.5 * lv).exp();
+                        PredictedOutput {
                             name: os.name.clone(),
                             value: os.denormalise(t),
                             normalised: t,
+                            sigma: sd as f64 * (os.max - os.min),
+                            sigma_normalised: sd,
                             integer: os.integer,
-                        })
-                        .collect(),
-                }
-            })
-            .collect())
+                        }
+                    })
+                    .collect()
+            }
+            _ => Vec::new(),
+        };
+        if let Some(o) = outputs.iter().find(|o| !o.value.is_finite() || !o.sigma.is_finite()) {
+            return Err(NetError::BadImage(format!("the model predicted a non-finite {} on this image", o.name)));
+        }
+        if cell_logits.iter().flatten().any(|l| !l.is_finite()) {
+            return Err(NetError::BadImage("the model predicted non-finite cell logits on this image".into()));
+        }
+        Ok(Prediction { cell_logits, outputs })
     }
 }
 
-/// Milliseconds per image of [`PreEstimator::predict`] on one thread (a synthetic image of the
-/// input size; one warm-up call, then the mean of `n` calls).
+/// Read the fit's target with the pre-estimator: `target` is one repeat of the pattern as the
+/// fit matches it (src/fit/target.rs `fit_scene`: `n_a` cells across, `n_e` down, any number of
+/// pixels per cell, row of cells `r` from the top = weft `n_e − 1 − r`, column `j` = warp `j`),
+/// linear RGB at any exposure.
+///
+/// The repeat is box-resampled (in linear light) to the network's pixels per cell, tiled to at
+/// least the training views' cells across and down (whole repeats, so every pattern cell appears
+/// equally often), and read once; each pattern cell's logit is the mean over its copies. The
+/// parameters come from the same pass. Cost: about one training view (8 × 8 cells) per
+/// millisecond-scale pass on one core, growing with the tiled area.
+pub fn read_view(model: &PreEstimator, target: &Image, n_e: usize, n_a: usize) -> Result<ViewPrediction, NetError> {
+    if n_e == 0 || n_a == 0 || n_e > MAX_VIEW_CELLS || n_a > MAX_VIEW_CELLS {
+        return Err(NetError::BadImage(format!(
+            "a repeat of {n_e}×{n_a} cells; 1 to {MAX_VIEW_CELLS} cells a side are supported"
+        )));
+    }
+    if (target.width as usize) < n_a || (target.height as usize) < n_e {
+        return Err(NetError::BadImage(format!(
+            "target is {}×{} px, less than one pixel per cell for {n_a}×{n_e} cells",
+            target.width, target.height
+        )));
+    }
+    if let Some(k) = target.data.iter().position(|p| p.iter().any(|v| !v.is_finite())) {
+        return Err(NetError::BadImage(format!(
+            "target has a non-finite value at pixel ({}, {})",
+            k as u32 % target.width,
+            k as u32 / target.width
+        )));
+    }
+    let ppc = model.spec.px_per_cell;
+    let (w1, h1) = ((n_a * ppc) as u32, (n_e * ppc) as u32);
+    let repeat = box_resample(target.width, target.height, |x, y| target.get(x, y), w1, h1);
+    let cells = model.spec.cells().max(1);
+    let (kx, ky) = (cells.div_ceil(n_a), cells.div_ceil(n_e));
+    let (w, h) = (w1 * kx as u32, h1 * ky as u32);
+    let view = Rgb32FImage::from_fn(w, h, |x, y| Rgb(repeat[((y % h1) * w1 + x % w1) as usize]));
+    let p = model.predict(&view)?;
+    // Grid row R from the top shows repeat row R mod n_e, i.e. weft n_e − 1 − (R mod n_e);
+    // grid column K shows warp K mod n_a (`cell_rect`).
+    let mut sum = vec![vec![0.0f32; n_a]; n_e];
+    for (r, row) in p.cell_logits.iter().enumerate() {
+        for (k, &l) in row.iter().enumerate() {
+            sum[n_e - 1 - r % n_e][k % n_a] += l;
+        }
+    }
+    let copies = (kx * ky) as f32;
+    let cell_logits = sum.into_iter().map(|r| r.into_iter().map(|v| v / copies).collect()).collect();
+    Ok(ViewPrediction { cell_logits, outputs: p.outputs })
+}
+
+/// Milliseconds per [`read_view`] on one thread, for a one-repeat target of a 4 × 4 pattern at 12
+/// px per cell (resampled and tiled to the network's 8 × 8 cells); one warm-up call, then the
+/// mean of `n` calls.
 pub fn bench_inference(model: &PreEstimator, n: usize) -> f64 {
-    let s = model.spec.input_size as u32;
-    let img = Rgb32FImage::from_fn(s, s, |x, y| {
-        let v = if (x / 3 + y / 3) % 2 == 0 { 0.7 } else { 0.1 };
-        Rgb([v, v * 0.8, v * 0.5])
-    });
+    let img = Image::new(
+        48,
+        48,
+        (0..48 * 48)
+            .map(|k| {
+                let (x, y) = (k % 48, k / 48);
+                let v = if (x / 3 + y / 3) % 2 == 0 { 0.7 } else { 0.1 };
+                [v, v * 0.8, v * 0.5]
+            })
+            .collect(),
+    );
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("building a 1-thread pool");
     pool.install(|| {
-        let _ = model.predict(&img);
+        let _ = read_view(model, &img, 4, 4);
         let t0 = Instant::now();
         for _ in 0..n.max(1) {
-            let _ = model.predict(&img);
+            let _ = read_view(model, &img, 4, 4);
         }
         t0.elapsed().as_secs_f64() * 1e3 / n.max(1) as f64
     })
@@ -311,12 +419,12 @@ mod tests {
     use super::*;
     use crate::net::train;
     use crate::net::train::save_model;
-    use crate::net::train::tests::{stripe_samples, tiny_cfg, tiny_spec};
+    use crate::net::train::tests::{bar_samples, tiny_cfg, tiny_spec};
     use std::path::PathBuf;
 
     fn trained() -> (tempfile::TempDir, PathBuf) {
         let dir = tempfile::tempdir().unwrap();
-        let samples = stripe_samples(8, 32, 9);
+        let samples = bar_samples(8, 9);
         train(&samples, &tiny_spec(), &tiny_cfg(1), dir.path(), false).unwrap();
         let p = dir.path().join("model.safetensors");
         (dir, p)
@@ -332,28 +440,69 @@ mod tests {
         let m = PreEstimator::load(&p).unwrap();
         assert_eq!(m.spec(), &spec);
         assert!(m.metrics().is_none());
-        let imgs: Vec<Rgb32FImage> = stripe_samples(3, 40, 4).into_iter().map(|s| s.image).collect();
-        let x = Tensor::from_vec(
-            imgs.iter().flat_map(|i| preprocess(i, &spec)).collect::<Vec<_>>(),
-            (3, 3, 32, 32),
-            &Device::Cpu,
-        )
-        .unwrap();
-        let o = net.forward(&x).unwrap();
-        let direct = o.values.unwrap().to_vec2::<f32>().unwrap();
-        let batch = m.predict_batch(&imgs).unwrap();
-        for (i, img) in imgs.iter().enumerate() {
-            let single = m.predict(img).unwrap();
-            let norm: Vec<f32> = single.outputs.iter().map(|o| o.normalised).collect();
-            assert_eq!(norm, direct[i], "image {i}: bits differ after save/load");
-            assert_eq!(single.outputs, batch[i].outputs);
-            assert_eq!(single.class_probs, batch[i].class_probs);
-            assert!((single.class_probs.iter().sum::<f32>() - 1.0).abs() < 1e-5);
-            let period = single.get("period").unwrap();
-            assert!((3.0..=12.0).contains(&period) && period.fract() == 0.0);
-            let red = single.get("red").unwrap();
-            assert!((0.0..=1.0).contains(&red));
+        for s in bar_samples(3, 4) {
+            let (x, w, h) = preprocess(&s.image, 4);
+            let o = net.forward(&Tensor::from_vec(x, (1, 4, h, w), &Device::Cpu).unwrap()).unwrap();
+            let direct = o.mean.unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let logits = o.cell_logits.squeeze(0).unwrap().to_vec2::<f32>().unwrap();
+            let p = m.predict(&s.image).unwrap();
+            let norm: Vec<f32> = p.outputs.iter().map(|o| o.normalised).collect();
+            assert_eq!(norm, direct, "bits differ after save/load");
+            assert_eq!(p.cell_logits, logits);
+            assert_eq!((p.cell_logits.len(), p.cell_logits[0].len()), (8, 8));
+            let rows = p.get("rows").unwrap();
+            assert!((2.0..=4.0).contains(&rows) && rows.fract() == 0.0);
+            assert!(p.outputs.iter().all(|o| o.sigma > 0.0 && o.sigma.is_finite()));
         }
+    }
+
+    #[test]
+    fn read_view_resamples_tiles_and_maps_rows_to_wefts() {
+        // A 3×2-cell repeat (n_e = 3 rows, n_a = 2 columns) at 6 px per cell is resampled to 4 px
+        // per cell and tiled to 3 × 4 repeats (8 cells: ⌈8/2⌉ across, ⌈8/3⌉ down): read_view's
+        // logits must equal the mean of `predict` on that tiling over each cell's copies, with
+        // row r of the picture being weft n_e − 1 − r.
+        let (_dir, p) = trained();
+        let m = PreEstimator::load(&p).unwrap();
+        let (n_e, n_a, c) = (3usize, 2usize, 6u32);
+        let target = Image::new(
+            n_a as u32 * c,
+            n_e as u32 * c,
+            (0..(n_a * n_e) as u32 * c * c)
+                .map(|k| {
+                    let (x, y) = (k % (n_a as u32 * c), k / (n_a as u32 * c));
+                    let cell = (y / c) as f32 * 0.2 + (x / c) as f32 * 0.1;
+                    [0.1 + cell + 0.05 * (x % 3) as f32, 0.2 + 0.1 * (y % 2) as f32, 0.3]
+                })
+                .collect(),
+        );
+        let v = read_view(&m, &target, n_e, n_a).unwrap();
+        assert_eq!((v.cell_logits.len(), v.cell_logits[0].len()), (n_e, n_a));
+        let small = crate::math::resample::resample(&target, (n_a * 4) as u32, (n_e * 4) as u32);
+        let tiled = crate::fit::target::tile(&small, 4, 3);
+        assert_eq!((tiled.width, tiled.height), (32, 36));
+        let direct = m.predict(&tiled.to_rgb32f()).unwrap();
+        for i in 0..n_e {
+            for j in 0..n_a {
+                let r0 = n_e - 1 - i;
+                let copies: Vec<f32> = (0..9)
+                    .filter(|r| r % n_e == r0)
+                    .flat_map(|r| (0..8).filter(|k| k % n_a == j).map(move |k| (r, k)))
+                    .map(|(r, k)| direct.cell_logits[r][k])
+                    .collect();
+                assert_eq!(copies.len(), 12);
+                let mean = copies.iter().sum::<f32>() / 12.0;
+                assert!((v.cell_logits[i][j] - mean).abs() < 1e-5, "cell ({i},{j}): {} vs {mean}", v.cell_logits[i][j]);
+            }
+        }
+        assert_eq!(v.outputs, direct.outputs);
+        // Bad calls are errors, not panics.
+        assert!(read_view(&m, &target, 0, 2).is_err());
+        assert!(read_view(&m, &target, 40, 2).is_err(), "fewer pixels than cells");
+        assert!(read_view(&m, &target, 3, 65).is_err());
+        let mut nan = target.clone();
+        nan.data[5][1] = f32::NAN;
+        assert!(read_view(&m, &nan, n_e, n_a).unwrap_err().to_string().contains("non-finite"));
     }
 
     #[test]
@@ -402,7 +551,7 @@ mod tests {
         let forged = safetensors::serialize(ts.iter().map(|(n, t)| (n.as_str(), t)), Some(md2.clone())).unwrap();
         let e = PreEstimator::from_bytes(&forged, &p).unwrap_err();
         assert!(matches!(e, NetError::BadTensor { .. }), "{e}");
-        assert!(e.to_string().contains("fc1."), "{e}");
+        assert!(e.to_string().contains("fc1.") || e.to_string().contains("head."), "{e}");
 
         // A missing tensor, and an extra one.
         let fewer = safetensors::serialize(
@@ -442,12 +591,12 @@ mod tests {
             name: name.into(),
             value,
             normalised: 0.5,
+            sigma: 0.1,
+            sigma_normalised: 0.05,
             integer: name.starts_with("n_"),
         };
-        let p = Prediction {
-            class: 0,
-            class_name: String::new(),
-            class_probs: vec![],
+        let p = ViewPrediction {
+            cell_logits: vec![vec![3.0, -1.0], vec![-2.0, 0.5]],
             outputs: vec![
                 out("m_r", 0.95),
                 out("r_b_e[1]", 0.3),
@@ -471,6 +620,11 @@ mod tests {
             (c.appearance.m_r, c.appearance.r_b_e, c.n_p, c.n_f),
             (0.8, base.appearance.r_b_e, base.n_p, base.n_f)
         );
+        // The cells read: the plain weave; probabilities follow the logits.
+        assert_eq!(p.pattern().unwrap(), WeavePattern::preset("plain").unwrap());
+        assert!((p.probability(0, 0) - 0.952_574).abs() < 1e-5);
+        let floating = ViewPrediction { cell_logits: vec![vec![1.0, 1.0], vec![-1.0, -1.0]], outputs: vec![] };
+        assert!(floating.pattern().is_err(), "a weft over every warp floats");
     }
 
     #[test]
@@ -481,10 +635,9 @@ mod tests {
         img.put_pixel(1, 1, Rgb([f32::INFINITY, 0.0, 0.0]));
         assert!(matches!(m.predict(&img), Err(NetError::BadImage(_))));
         assert!(matches!(m.predict(&Rgb32FImage::new(5, 40)), Err(NetError::BadImage(_))));
-        let e = m.predict_batch(&[Rgb32FImage::new(16, 16), Rgb32FImage::new(4, 4)]).unwrap_err();
-        assert!(e.to_string().contains("image 1"), "{e}");
-        // Non-square and small inputs are fine.
-        assert!(m.predict(&Rgb32FImage::new(8, 13)).is_ok());
+        // Non-square images of whole and partial cells are fine.
+        let p = m.predict(&Rgb32FImage::new(8, 13)).unwrap();
+        assert_eq!((p.cell_logits.len(), p.cell_logits[0].len()), (3, 2));
         let ms = bench_inference(&m, 3);
         assert!(ms > 0.0 && ms.is_finite());
     }

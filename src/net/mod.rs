@@ -1,31 +1,38 @@
-//! The pre-estimator network (docs/design.md §2, §4.3).
+//! The pre-estimator network (docs/design.md §4.3).
 //!
-//! A small VGG-style convolutional network trained from scratch on synthetic renders. From one
-//! close-up photo it predicts the weave-pattern class and a list of range-normalised cloth
-//! parameters (plies, fibers, colours, roughness…), which seed the joint optimisation.
+//! A small fully convolutional network trained from scratch on synthetic renders of *the fit's
+//! view*: one repeat of the pattern seen orthographically from the top at [`NetSpec::px_per_cell`]
+//! pixels per cell (8), tiled. It reads
+//!
+//! * one over/under logit per pattern cell of the view's grid (VGG-style 3×3 convolutions and
+//!   max-pooling from pixels down to one value per cell, a 1×1 convolution head), so any pattern
+//!   is read — averaging the logits of the grid cells that show the same pattern cell;
+//! * the parameters the picture determines (radii, ply count, body colours, specular strength
+//!   and lobe width: see [`view_outputs`]), each as a mean and a log-variance (Gaussian negative
+//!   log-likelihood), so the fit knows how much to trust each.
 //!
 //! * [`NetSpec`] describes the architecture and the outputs; it is stored in the metadata of every
 //!   saved model, so a model file is self-describing.
-//! * [`model`] holds the network (backbone, Gram/pooled features, FC head) and the seeded init.
-//! * [`train()`] trains from in-memory [`Sample`]s with AdamW, checkpoints every epoch and resumes.
-//! * [`PreEstimator`] loads a trained model and predicts; [`bench_inference`] times it.
-//! * [`TrainReport`] holds the metrics and writes a Markdown report and a loss-curve PNG.
+//! * [`model`] holds the network and the seeded init; [`train()`] trains from in-memory
+//!   [`Sample`]s with AdamW and dihedral augmentation, checkpoints every epoch and resumes.
+//! * [`PreEstimator`] loads a trained model; [`read_view`] is the fit's entry point (its target
+//!   at any pixels per cell, `n_e × n_a` cells); [`bench_inference`] times it.
+//! * [`TrainReport`] holds the metrics and writes a Markdown report and learning curves.
 //!
-//! Images enter as linear RGB ([`image::Rgb32FImage`]) of any size; [`preprocess`] takes the
-//! centre square crop, box-filters it in linear space down to `input_size`, encodes it (sRGB or
-//! log) and normalises it. Training and inference both go through that one function.
+//! Images enter as linear RGB; [`preprocess`] normalises them for exposure (divides by the mean)
+//! and log-encodes them, with the mean level kept as a fourth, constant channel. Training and
+//! inference both go through that one function.
 
 pub mod infer;
 pub mod model;
 pub mod report;
 pub mod train;
 
-pub use infer::{bench_inference, PreEstimator, PredictedOutput, Prediction};
+pub use infer::{bench_inference, read_view, PreEstimator, PredictedOutput, Prediction, ViewPrediction};
 pub use model::PreNet;
-pub use report::{EpochStats, OutputError, TrainReport};
+pub use report::{ClassStats, EpochStats, OutputError, TrainReport};
 pub use train::{bench_train_step, train, LrSchedule, Sample, TrainConfig};
 
-use crate::math::resample::box_resample;
 use crate::params::{ClothParams, ParamInfo, ParamKind, PARAMS};
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
@@ -41,7 +48,7 @@ pub const META_METRICS: &str = "woven.metrics";
 /// Key of the file-format tag in the safetensors metadata.
 pub const META_FORMAT: &str = "woven.format";
 /// Value of [`META_FORMAT`] for a model file.
-pub const FORMAT_MODEL: &str = "woven-preestimator-v1";
+pub const FORMAT_MODEL: &str = "woven-preestimator-v2";
 
 /// Errors of loading a model and predicting with it.
 #[derive(Debug, thiserror::Error)]
@@ -155,106 +162,87 @@ impl OutputSpec {
     }
 }
 
-/// The regression outputs of the pre-estimator: one per cloth parameter, in [`PARAMS`] order
-/// (the 30 appearance scalars, `r_e`, `r_a`, `n_p`, `n_f`). A model file stores its outputs by
-/// name, so a model trained with another order still loads and predicts.
-pub fn cloth_outputs() -> Vec<OutputSpec> {
-    PARAMS.iter().map(OutputSpec::for_param).collect()
+/// Names of the parameters the network predicts: those one picture of the fit's view determines
+/// (the Cramér–Rao analysis of `src/fit/identify.rs` marks the body colours, `R^S` and `α^S` as
+/// identifiable under the default rig; radii and ply count shape every yarn's silhouette).
+pub const VIEW_OUTPUTS: [&str; 13] = [
+    "r_e", "r_a", "n_p", "r_b_e[0]", "r_b_e[1]", "r_b_e[2]", "r_b_a[0]", "r_b_a[1]", "r_b_a[2]", "r_s[0]", "r_s[1]",
+    "r_s[2]", "alpha_s",
+];
+
+/// The regression outputs of the pre-estimator: [`VIEW_OUTPUTS`], each with its Table-1 range.
+pub fn view_outputs() -> Vec<OutputSpec> {
+    VIEW_OUTPUTS
+        .iter()
+        .map(|n| OutputSpec::for_param(PARAMS.iter().find(|p| p.name == *n).expect("a parameter of the table")))
+        .collect()
 }
 
-/// Training targets of a cloth for [`cloth_outputs`]: every parameter normalised to `[0,1]` by
-/// its range.
-pub fn cloth_targets(cloth: &ClothParams) -> Vec<f32> {
-    cloth.to_vec().iter().zip(cloth_outputs()).map(|(&x, o)| o.normalise(x as f64)).collect()
+/// Training targets of a cloth for `outputs` (by parameter name), normalised to `[0,1]` by each
+/// output's range; `None` when an output is not a cloth parameter.
+pub fn cloth_targets(cloth: &ClothParams, outputs: &[OutputSpec]) -> Option<Vec<f32>> {
+    let v = cloth.to_vec();
+    outputs.iter().map(|o| PARAMS.iter().position(|p| p.name == o.name).map(|k| o.normalise(v[k] as f64))).collect()
 }
 
-/// Which image features feed the fully connected layers.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum FeatureType {
-    /// Upper triangles of the Gram matrices of every backbone block (texture statistics, as in
-    /// Li et al. 2024 \[Li24\]).
-    Gram,
-    /// Global average- and max-pooled activations of every block.
-    Pooled,
-    /// Both, concatenated.
-    #[default]
-    Both,
-}
-
-/// How linear RGB is encoded before normalisation.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum InputEncoding {
-    /// Clamp to `[0,1]`, sRGB transfer curve, then `(v - 0.5) / 0.25`.
-    #[default]
-    Srgb,
-    /// `ln(v + 1e-3)`, shifted and scaled to roughly `[-2, 2]`.
-    Log,
+/// The output that plays the same part for the other yarn family (`r_e` ↔ `r_a`, `r_b_e[k]` ↔
+/// `r_b_a[k]`, `s_b_e[k]` ↔ `s_b_a[k]`): transposing a view swaps wefts and warps.
+pub fn weft_warp_partner(name: &str) -> Option<String> {
+    let swap = [("r_e", "r_a"), ("r_a", "r_e")];
+    if let Some((_, b)) = swap.iter().find(|(a, _)| *a == name) {
+        return Some(b.to_string());
+    }
+    for (a, b) in [("_b_e[", "_b_a["), ("_b_a[", "_b_e[")] {
+        if name.contains(a) {
+            return Some(name.replacen(a, b, 1));
+        }
+    }
+    None
 }
 
 /// Architecture and outputs of the pre-estimator. Serialised as JSON into each model file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NetSpec {
-    /// Side of the square network input in pixels (e.g. 64).
+    /// Side of the square training views in pixels (64: 8 × 8 cells). Inference takes any size.
     pub input_size: usize,
-    /// Names of the weave-pattern classes (the class head has one logit per name).
-    pub classes: Vec<String>,
-    /// Scalar outputs in the order of [`Sample::targets`].
-    pub outputs: Vec<OutputSpec>,
-    /// Output channels of each backbone block; each block halves the resolution.
-    #[serde(default = "default_backbone")]
+    /// Pixels per pattern cell of the network's input: `2^backbone.len()` (one max-pool per block).
+    pub px_per_cell: usize,
+    /// Output channels of each pooled block (3×3 convs + ReLU, then a 2×2 max-pool).
     pub backbone: Vec<usize>,
-    /// 3×3 conv + ReLU layers per block (VGG uses 2–4; 1 is much cheaper on CPU).
-    #[serde(default = "default_convs_per_block")]
+    /// Output channels of the 3×3 conv + ReLU layers at cell resolution, after the last pool
+    /// (they let a cell see its neighbours' crossings).
+    pub cell_convs: Vec<usize>,
+    /// 3×3 conv + ReLU layers per pooled block.
     pub convs_per_block: usize,
-    /// Width of the two fully connected layers.
-    #[serde(default = "default_hidden")]
+    /// Width of the hidden layer of the parameter head.
     pub hidden: usize,
-    /// Negative slope of the LeakyReLU in the FC layers.
-    #[serde(default = "default_leaky")]
+    /// Negative slope of the LeakyReLUs (trunk and parameter head).
     pub leaky_slope: f64,
-    /// Which features feed the FC layers.
+    /// Scalar outputs (mean and log-variance each), in the order of [`Sample::targets`].
+    pub outputs: Vec<OutputSpec>,
+    /// Names of the dataset's pattern classes (reporting only: the network reads cells).
     #[serde(default)]
-    pub features: FeatureType,
-    /// Input encoding.
-    #[serde(default)]
-    pub encoding: InputEncoding,
+    pub classes: Vec<String>,
 }
 
-fn default_backbone() -> Vec<usize> {
-    vec![16, 32, 64, 64]
-}
-fn default_convs_per_block() -> usize {
-    1
-}
-fn default_hidden() -> usize {
-    256
-}
-fn default_leaky() -> f64 {
-    0.1
-}
+/// Input channels: log of the exposure-normalised RGB, and the log mean level.
+pub const INPUT_CHANNELS: usize = 4;
 
 impl NetSpec {
-    /// A spec with the default architecture (blocks 16-32-64-64, one conv each, FC 256×2, Gram +
-    /// pooled features, sRGB input).
-    pub fn new(input_size: usize, classes: Vec<String>, outputs: Vec<OutputSpec>) -> Self {
+    /// A spec with the default architecture: pooled blocks 16-32-64 (8 px per cell), one
+    /// 64-channel conv at cell resolution, a 64-wide parameter head.
+    pub fn new(input_size: usize, outputs: Vec<OutputSpec>) -> Self {
         Self {
             input_size,
-            classes,
+            px_per_cell: 8,
+            backbone: vec![16, 32, 64],
+            cell_convs: vec![64],
+            convs_per_block: 1,
+            hidden: 64,
+            leaky_slope: 0.1,
             outputs,
-            backbone: default_backbone(),
-            convs_per_block: default_convs_per_block(),
-            hidden: default_hidden(),
-            leaky_slope: default_leaky(),
-            features: FeatureType::default(),
-            encoding: InputEncoding::default(),
+            classes: Vec::new(),
         }
-    }
-
-    /// Number of classes.
-    pub fn n_classes(&self) -> usize {
-        self.classes.len()
     }
 
     /// Number of scalar outputs.
@@ -262,24 +250,31 @@ impl NetSpec {
         self.outputs.len()
     }
 
+    /// Cells across a training view.
+    pub fn cells(&self) -> usize {
+        self.input_size / self.px_per_cell
+    }
+
     /// Check the spec for consistency.
     pub fn validate(&self) -> Result<(), NetError> {
         let bad = |s: String| Err(NetError::Spec(s));
-        if self.classes.is_empty() && self.outputs.is_empty() {
-            return bad("no classes and no outputs".into());
-        }
-        if self.backbone.is_empty() || self.backbone.contains(&0) {
-            return bad(format!("backbone channels {:?} invalid", self.backbone));
+        if self.backbone.is_empty() || self.backbone.contains(&0) || self.cell_convs.contains(&0) {
+            return bad(format!("backbone channels {:?} / cell convs {:?} invalid", self.backbone, self.cell_convs));
         }
         if self.convs_per_block == 0 || self.hidden == 0 {
             return bad("convs_per_block and hidden must be positive".into());
         }
-        let min_side = 1usize << self.backbone.len();
-        if self.input_size < min_side || !self.input_size.is_multiple_of(min_side) {
+        if self.px_per_cell != 1 << self.backbone.len() {
             return bad(format!(
-                "input_size {} must be a positive multiple of 2^{} = {min_side} (one max-pool per block)",
-                self.input_size,
+                "px_per_cell {} must be 2^{} (one max-pool per backbone block)",
+                self.px_per_cell,
                 self.backbone.len()
+            ));
+        }
+        if self.input_size < self.px_per_cell || !self.input_size.is_multiple_of(self.px_per_cell) {
+            return bad(format!(
+                "input_size {} must be a positive multiple of px_per_cell = {}",
+                self.input_size, self.px_per_cell
             ));
         }
         for o in &self.outputs {
@@ -312,37 +307,39 @@ pub fn check_image(img: &Rgb32FImage) -> Result<(), NetError> {
     Ok(())
 }
 
-/// Network input for one image: centre square crop, box-filter in linear space to
-/// `spec.input_size` ([`crate::math::resample::box_resample`], the fit's resampling, reading the
-/// crop in place), encode, normalise. Returns `3 × size × size` values in CHW order.
+/// Network input for one image at the network's pixels per cell: the centred crop to whole
+/// cells (`px_per_cell` multiples), encoded as [`INPUT_CHANNELS`] planes in CHW order:
 ///
-/// The image must pass [`check_image`].
-pub fn preprocess(img: &Rgb32FImage, spec: &NetSpec) -> Vec<f32> {
-    let size = spec.input_size;
-    let (w, h) = img.dimensions();
-    let side = w.min(h);
-    let (x0, y0) = ((w - side) / 2, (h - side) / 2);
+/// * `(ln(v/m + 0.02) + 0.7) / 1.2` per RGB channel, `m` the image's mean linear value: dividing
+///   by `m` normalises exposure (the fit's photos come at any exposure), and the log keeps both
+///   the dark gaps and the highlights (up to ~10× the mean) in range without clipping;
+/// * `(ln m + 1.5) / 1.0`, constant: the absolute level, which the body colours need.
+///
+/// Returns the values and the crop's `(width, height)`. The image must pass [`check_image`].
+pub fn preprocess(img: &Rgb32FImage, px_per_cell: usize) -> (Vec<f32>, usize, usize) {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let (cw, ch) = (w - w % px_per_cell, h - h % px_per_cell);
+    let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
     let raw = img.as_raw();
-    let at = |x: u32, y: u32| {
-        let i = ((y0 + y) as usize * w as usize + (x0 + x) as usize) * 3;
-        [raw[i], raw[i + 1], raw[i + 2]]
-    };
-    let px = box_resample(side, side, at, size as u32, size as u32);
-    let mut out = vec![0f32; 3 * size * size];
-    for (i, p) in px.iter().enumerate() {
-        for (c, &a) in p.iter().enumerate() {
-            out[c * size * size + i] = encode(a, spec.encoding);
+    let at = |x: usize, y: usize, c: usize| raw[((y0 + y) * w + x0 + x) * 3 + c].max(0.0);
+    let mut sum = 0.0f64;
+    for y in 0..ch {
+        for x in 0..cw {
+            sum += (0..3).map(|c| at(x, y, c) as f64).sum::<f64>();
         }
     }
-    out
-}
-
-fn encode(v: f32, enc: InputEncoding) -> f32 {
-    match enc {
-        InputEncoding::Srgb => (linear_to_srgb(v.clamp(0.0, 1.0)) - 0.5) / 0.25,
-        // ln(1e-3) ≈ -6.9, ln(1) = 0, ln(4) ≈ 1.4: centre at -2.5, scale 2.
-        InputEncoding::Log => ((v.max(0.0) + 1e-3).ln() + 2.5) / 2.0,
+    let m = (sum / (3 * cw * ch).max(1) as f64).max(1e-4) as f32;
+    let n = cw * ch;
+    let mut out = vec![0f32; INPUT_CHANNELS * n];
+    for y in 0..ch {
+        for x in 0..cw {
+            for c in 0..3 {
+                out[c * n + y * cw + x] = ((at(x, y, c) / m + 0.02).ln() + 0.7) / 1.2;
+            }
+        }
     }
+    out[3 * n..].fill(m.ln() + 1.5);
+    (out, cw, ch)
 }
 
 #[cfg(test)]
@@ -351,27 +348,32 @@ mod tests {
     use image::Rgb;
 
     fn spec(size: usize) -> NetSpec {
-        NetSpec::new(size, vec!["a".into()], vec![OutputSpec::continuous("x", 0.0, 1.0)])
+        NetSpec::new(size, vec![OutputSpec::continuous("x", 0.0, 1.0)])
     }
 
     #[test]
-    fn preprocess_crops_centre_and_averages_in_linear_space() {
-        // 8 px wide border columns of value 1 must be cropped away; the centre 16×16 holds a
-        // checkerboard of 0 and 1 whose linear average is 0.5.
-        let img = Rgb32FImage::from_fn(32, 16, |x, y| {
-            if !(8..24).contains(&x) || (x + y) % 2 == 0 {
-                Rgb([1.0; 3])
-            } else {
-                Rgb([0.0; 3])
-            }
-        });
-        let s = spec(8);
-        let v = preprocess(&img, &s);
-        assert_eq!(v.len(), 3 * 8 * 8);
-        let expect = (linear_to_srgb(0.5) - 0.5) / 0.25;
-        for x in v {
-            assert!((x - expect).abs() < 1e-5, "{x} vs {expect}");
-        }
+    fn preprocess_crops_to_whole_cells_and_normalises_exposure() {
+        // 20×16 px at 8 px per cell: the centred 16×16 crop; its mean is 0.5, so a pixel of 0.5
+        // encodes as ln(1.02), whatever the exposure; the fourth plane holds ln(mean).
+        let img = |k: f32| {
+            Rgb32FImage::from_fn(20, 16, |x, y| {
+                if !(2..18).contains(&x) {
+                    Rgb([9.0; 3])
+                } else if (x + y) % 2 == 0 {
+                    Rgb([k; 3])
+                } else {
+                    Rgb([0.0; 3])
+                }
+            })
+        };
+        let (a, w, h) = preprocess(&img(1.0), 8);
+        assert_eq!((w, h, a.len()), (16, 16, 4 * 256));
+        let (b, _, _) = preprocess(&img(3.0), 8);
+        assert_eq!(a[..768], b[..768], "exposure must not change the RGB planes");
+        let on = ((2.0f32 + 0.02).ln() + 0.7) / 1.2;
+        let off = ((0.02f32).ln() + 0.7) / 1.2;
+        assert!((a[0] - on).abs() < 1e-5 && (a[1] - off).abs() < 1e-5, "{} {}", a[0], a[1]);
+        assert!((a[800] - (0.5f32.ln() + 1.5)).abs() < 1e-5 && (b[800] - (1.5f32.ln() + 1.5)).abs() < 1e-5);
     }
 
     #[test]
@@ -380,29 +382,39 @@ mod tests {
         assert!(s.validate().is_ok());
         s.input_size = 60;
         assert!(matches!(s.validate(), Err(NetError::Spec(_))));
+        let mut s = spec(64);
+        s.px_per_cell = 4;
+        assert!(matches!(s.validate(), Err(NetError::Spec(_))), "3 pools give 8 px per cell");
         let o = OutputSpec::integer("n_p", 1, 7);
         assert_eq!(o.denormalise(0.0), 1.0);
         assert_eq!(o.denormalise(1.0), 7.0);
         assert_eq!(o.denormalise(0.49), 4.0);
         assert!((o.normalise(4.0) - 0.5).abs() < 1e-6);
-        let toml_s = toml::to_string(&spec(64)).unwrap();
-        let back: NetSpec = toml::from_str(&toml_s).unwrap();
-        assert_eq!(back, spec(64));
+        let json = serde_json::to_string(&spec(64)).unwrap();
+        assert_eq!(serde_json::from_str::<NetSpec>(&json).unwrap(), spec(64));
     }
 
     #[test]
-    fn cloth_outputs_follow_the_parameter_table() {
-        let o = cloth_outputs();
-        assert_eq!(o.len(), PARAMS.len());
-        assert_eq!(o[crate::params::param::R_E], OutputSpec::continuous("r_e", 1.0, 5.0));
-        assert_eq!(o[crate::params::param::N_F], OutputSpec::integer("n_f", 20, 50));
-        assert_eq!(o[crate::params::param::ETA_S_Y], OutputSpec::continuous("eta_s_y", 1.4f32 as f64, 1.6f32 as f64));
+    fn view_outputs_follow_the_parameter_table() {
+        let o = view_outputs();
+        assert_eq!(o.len(), VIEW_OUTPUTS.len());
+        assert_eq!(o[0], OutputSpec::continuous("r_e", 1.0, 5.0));
+        assert_eq!(o[2], OutputSpec::integer("n_p", 1, 7));
         let mut c = ClothParams::preset("plain").unwrap();
-        (c.r_e, c.n_p, c.n_f, c.appearance.m_r) = (2.0, 7, 35, 0.8);
-        let t = cloth_targets(&c);
-        use crate::params::param::*;
-        assert_eq!((t[R_E], t[N_P], t[N_F], t[M_R]), (0.25, 1.0, 0.5, 1.0));
+        (c.r_e, c.n_p, c.appearance.r_b_a[1]) = (2.0, 7, 0.3);
+        let t = cloth_targets(&c, &o).unwrap();
+        assert_eq!((t[0], t[2], t[7]), (0.25, 1.0, 0.3));
         assert!(t.iter().all(|v| (0.0..=1.0).contains(v)));
+        assert!(cloth_targets(&c, &[OutputSpec::continuous("period", 0.0, 1.0)]).is_none());
+        // Partners exist among the outputs and are symmetric.
+        for n in VIEW_OUTPUTS {
+            if let Some(p) = weft_warp_partner(n) {
+                assert!(VIEW_OUTPUTS.contains(&p.as_str()), "{n} -> {p}");
+                assert_eq!(weft_warp_partner(&p).as_deref(), Some(n));
+            }
+        }
+        assert_eq!(weft_warp_partner("r_b_e[2]").as_deref(), Some("r_b_a[2]"));
+        assert_eq!(weft_warp_partner("alpha_s"), None);
     }
 
     #[test]

@@ -1,21 +1,30 @@
-//! The network: a VGG-style backbone, Gram and/or pooled features, two FC layers and the heads.
+//! The network: a fully convolutional VGG-style backbone that pools pixels down to one feature
+//! vector per pattern cell, a 1×1-conv head with one over/under logit per cell, and a small
+//! parameter head with a mean and a log-variance per output.
 //!
 //! ```text
-//! input (B,3,S,S)
-//!   block k = 0..K: [conv3×3 + ReLU] × convs_per_block  →  features of this block  →  max-pool 2
-//! features: per block, upper triangle of the Gram matrix  G = F·Fᵀ / (H·W)   (C(C+1)/2 values)
-//!           and/or spatial mean and max of each channel                      (2·C values),
-//!           all passed through ln(1 + f) (they are ≥ 0 and span three decades)
-//! fc1 (256) → LeakyReLU → fc2 (256) → LeakyReLU → head: class logits ‖ sigmoid(values)
+//! input (B,4,H,W), H and W multiples of px_per_cell = 2^K
+//!   block k = 0..K: [conv3×3 + LeakyReLU] × convs_per_block  →  max-pool 2  (H/2^K = cells)
+//!   cell convs:     [conv3×3 + LeakyReLU] per entry of cell_convs          (a cell sees its neighbours)
+//!   cell head:      conv1×1 → (B,1,h,w) logits: > 0 means the horizontal yarn (weft) is on top
+//!   parameter head: spatial mean ‖ max of the cell features → fc (hidden) → LeakyReLU →
+//!                   (mean = sigmoid, log-variance clamped to [−12, 2]) per output
 //! ```
 //!
-//! Variable names (safetensors keys): `block{k}.conv{j}.{weight,bias}`, `fc1.*`, `fc2.*`, `head.*`.
-//! Use [`seeded_init`] after building: candle's own initialisers are not seedable.
+//! Being fully convolutional, the network reads a view of any number of cells: the fit's repeat
+//! tiled to at least the training views' 8 × 8 cells. Variable names (safetensors keys):
+//! `block{k}.conv{j}`, `cell{j}`, `cell_head`, `fc1`, `head` (each `.weight`, `.bias`). Use
+//! [`seeded_init`] after building: candle's own initialisers are not seedable.
 
-use super::{FeatureType, NetSpec};
-use candle_core::{DType, Device, Module, Result, Tensor, D};
+use super::{NetSpec, INPUT_CHANNELS};
+use candle_core::{DType, Device, Module, Result, Tensor};
 use candle_nn::{conv2d, linear, ops, Conv2d, Conv2dConfig, Linear, VarBuilder, VarMap};
 use rand::prelude::*;
+
+/// Range of the predicted log-variance (of range-normalised values): σ from 0.0025 to 2.7 of the
+/// range. The floor keeps the likelihood from rewarding ever smaller variances on outputs the
+/// network already fits to float noise.
+pub const LOG_VAR_RANGE: (f64, f64) = (-12.0, 2.0);
 
 /// The pre-estimator network. Build it with [`PreNet::new`] from a [`VarBuilder`] over a
 /// [`VarMap`] (training) and overwrite the weights with [`seeded_init`] or loaded values.
@@ -23,56 +32,52 @@ use rand::prelude::*;
 pub struct PreNet {
     spec: NetSpec,
     blocks: Vec<Vec<Conv2d>>,
-    /// Per block: indices of the upper triangle in the flattened `C×C` Gram matrix.
-    triu: Vec<Tensor>,
-    fc1: Linear,
-    fc2: Linear,
-    head: Linear,
+    cell: Vec<Conv2d>,
+    cell_head: Conv2d,
+    fc1: Option<Linear>,
+    head: Option<Linear>,
 }
 
 /// Output of [`PreNet::forward`].
 #[derive(Debug)]
 pub struct NetOutput {
-    /// Class logits `(B, n_classes)`, `None` when the spec has no classes.
-    pub logits: Option<Tensor>,
-    /// Range-normalised values in `(0,1)`, `(B, n_outputs)`, `None` when there are no outputs.
-    pub values: Option<Tensor>,
-}
-
-/// Number of features fed to `fc1` for a spec.
-pub fn feature_dim(spec: &NetSpec) -> usize {
-    spec.backbone
-        .iter()
-        .map(|&c| match spec.features {
-            FeatureType::Gram => c * (c + 1) / 2,
-            FeatureType::Pooled => 2 * c,
-            FeatureType::Both => c * (c + 1) / 2 + 2 * c,
-        })
-        .sum()
+    /// Over/under logit per cell, `(B, H/px_per_cell, W/px_per_cell)`.
+    pub cell_logits: Tensor,
+    /// Range-normalised means in `(0,1)`, `(B, n_outputs)`; `None` without outputs.
+    pub mean: Option<Tensor>,
+    /// Log-variances of the normalised values, `(B, n_outputs)`; `None` without outputs.
+    pub log_var: Option<Tensor>,
 }
 
 impl PreNet {
     /// Build the layers (variables are created in `vb`).
     pub fn new(spec: &NetSpec, vb: VarBuilder) -> Result<Self> {
-        let cfg = Conv2dConfig { padding: 1, ..Default::default() };
+        let pad = Conv2dConfig { padding: 1, ..Default::default() };
         let mut blocks = Vec::new();
-        let mut triu = Vec::new();
-        let mut cin = 3;
+        let mut cin = INPUT_CHANNELS;
         for (k, &c) in spec.backbone.iter().enumerate() {
             let mut convs = Vec::new();
             for j in 0..spec.convs_per_block {
-                convs.push(conv2d(cin, c, 3, cfg, vb.pp(format!("block{k}.conv{j}")))?);
+                convs.push(conv2d(cin, c, 3, pad, vb.pp(format!("block{k}.conv{j}")))?);
                 cin = c;
             }
             blocks.push(convs);
-            let idx: Vec<u32> = (0..c).flat_map(|i| (i..c).map(move |j| (i * c + j) as u32)).collect();
-            triu.push(Tensor::from_vec(idx, c * (c + 1) / 2, vb.device())?);
         }
-        let nf = feature_dim(spec);
-        let fc1 = linear(nf, spec.hidden, vb.pp("fc1"))?;
-        let fc2 = linear(spec.hidden, spec.hidden, vb.pp("fc2"))?;
-        let head = linear(spec.hidden, spec.n_classes() + spec.n_outputs(), vb.pp("head"))?;
-        Ok(Self { spec: spec.clone(), blocks, triu, fc1, fc2, head })
+        let mut cell = Vec::new();
+        for (j, &c) in spec.cell_convs.iter().enumerate() {
+            cell.push(conv2d(cin, c, 3, pad, vb.pp(format!("cell{j}")))?);
+            cin = c;
+        }
+        let cell_head = conv2d(cin, 1, 1, Conv2dConfig::default(), vb.pp("cell_head"))?;
+        let (fc1, head) = if spec.n_outputs() > 0 {
+            (
+                Some(linear(2 * cin, spec.hidden, vb.pp("fc1"))?),
+                Some(linear(spec.hidden, 2 * spec.n_outputs(), vb.pp("head"))?),
+            )
+        } else {
+            (None, None)
+        };
+        Ok(Self { spec: spec.clone(), blocks, cell, cell_head, fc1, head })
     }
 
     /// The spec this network was built from.
@@ -80,97 +85,83 @@ impl PreNet {
         &self.spec
     }
 
-    /// Feature vector `(B, feature_dim)` of a batch `(B,3,S,S)` of preprocessed images.
-    pub fn features(&self, x: &Tensor) -> Result<Tensor> {
-        let mut feats = Vec::new();
+    /// Forward pass on a batch `(B, 4, H, W)` of preprocessed views (H, W multiples of
+    /// `px_per_cell`).
+    pub fn forward(&self, x: &Tensor) -> Result<NetOutput> {
+        // LeakyReLU throughout: with plain ReLUs the trunk died within the first epoch on the
+        // rendered views (every unit of the last layer negative, the cell loss stuck at ln 2 for
+        // any learning rate from 3e-4 to 1e-2), and a dead unit never recovers.
+        let s = self.spec.leaky_slope;
+        let leaky = |t: Tensor| -> Result<Tensor> { (t.relu()? * (1.0 - s))? + (t * s)? };
         let mut h = x.clone();
-        for (k, convs) in self.blocks.iter().enumerate() {
+        for convs in &self.blocks {
             for conv in convs {
-                h = h.apply(conv)?.relu()?;
-            }
-            let (b, c, hh, ww) = h.dims4()?;
-            let flat = h.reshape((b, c, hh * ww))?;
-            if matches!(self.spec.features, FeatureType::Gram | FeatureType::Both) {
-                let g = flat.matmul(&flat.transpose(1, 2)?)?;
-                let g = (g.reshape((b, c * c))? / (hh * ww) as f64)?;
-                feats.push(g.index_select(&self.triu[k], 1)?);
-            }
-            if matches!(self.spec.features, FeatureType::Pooled | FeatureType::Both) {
-                feats.push(flat.mean(2)?);
-                feats.push(flat.max(2)?);
+                h = leaky(h.apply(conv)?)?;
             }
             h = h.max_pool2d(2)?;
         }
-        // All features are ≥ 0 (ReLU activations and their second moments) and grow with
-        // depth and contrast (Gram entries reach 100+ at init): compress with ln(1 + f).
-        (Tensor::cat(&feats, 1)? + 1.0)?.log()
-    }
-
-    /// Forward pass on a batch `(B,3,S,S)` of preprocessed images.
-    pub fn forward(&self, x: &Tensor) -> Result<NetOutput> {
-        let s = self.spec.leaky_slope;
-        let leaky = |t: Tensor| -> Result<Tensor> { (t.relu()? * (1.0 - s))? + (t * s)? };
-        let f = self.features(x)?;
-        let h = leaky(self.fc1.forward(&f)?)?;
-        let h = leaky(self.fc2.forward(&h)?)?;
-        let out = self.head.forward(&h)?;
-        let nc = self.spec.n_classes();
-        let no = self.spec.n_outputs();
-        let logits = if nc > 0 { Some(out.narrow(1, 0, nc)?) } else { None };
-        let values = if no > 0 { Some(ops::sigmoid(&out.narrow(1, nc, no)?)?) } else { None };
-        Ok(NetOutput { logits, values })
+        for conv in &self.cell {
+            h = leaky(h.apply(conv)?)?;
+        }
+        let cell_logits = h.apply(&self.cell_head)?.squeeze(1)?;
+        let (mut mean, mut log_var) = (None, None);
+        if let (Some(fc1), Some(head)) = (&self.fc1, &self.head) {
+            let (b, c, hh, ww) = h.dims4()?;
+            let flat = h.reshape((b, c, hh * ww))?;
+            let pooled = Tensor::cat(&[flat.mean(2)?, flat.max(2)?], 1)?;
+            let z = leaky(fc1.forward(&pooled)?)?;
+            let out = head.forward(&z)?;
+            let n = self.spec.n_outputs();
+            mean = Some(ops::sigmoid(&out.narrow(1, 0, n)?)?);
+            log_var = Some(out.narrow(1, n, n)?.clamp(LOG_VAR_RANGE.0, LOG_VAR_RANGE.1)?);
+        }
+        Ok(NetOutput { cell_logits, mean, log_var })
     }
 }
 
 /// Loss terms of one batch.
 #[derive(Debug)]
 pub struct LossTerms {
-    /// `ce + l1_weight · l1`, the value that is minimised.
+    /// `bce + param_weight · nll`, the value that is minimised.
     pub total: Tensor,
-    /// Mean cross-entropy of the classes (0 when there are fewer than 2 classes).
-    pub ce: f32,
-    /// Mean absolute error of the normalised values.
-    pub l1: f32,
+    /// Mean binary cross-entropy of the cell logits.
+    pub bce: f32,
+    /// Mean Gaussian negative log-likelihood of the normalised outputs (without the constant
+    /// ½ ln 2π; 0 without outputs).
+    pub nll: f32,
 }
 
-/// Cross-entropy on the class logits plus `l1_weight` × mean L1 on the normalised values.
-/// `classes` is `(B,)` u32, `targets` `(B, n_outputs)` f32.
-pub fn loss(out: &NetOutput, classes: &Tensor, targets: &Tensor, l1_weight: f64) -> Result<LossTerms> {
-    let mut total: Option<Tensor> = None;
-    let mut ce = 0.0;
-    let mut l1 = 0.0;
-    if let Some(logits) = &out.logits {
-        if logits.dim(1)? > 1 {
-            let t = candle_nn::loss::cross_entropy(logits, classes)?;
-            ce = t.to_scalar::<f32>()?;
-            total = Some(t);
+/// Binary cross-entropy of the cell logits against `cells` (same shape, 0/1), plus
+/// `param_weight` × the Gaussian negative log-likelihood `½(e^{−s}(μ − t)² + s)` of the
+/// normalised `targets` `(B, n_outputs)` under mean `μ` and log-variance `s`, each term weighted
+/// by its variance `e^s` held constant (β-NLL, β = 1).
+pub fn loss(out: &NetOutput, cells: &Tensor, targets: &Tensor, param_weight: f64) -> Result<LossTerms> {
+    // BCE with logits, in the stable form max(l, 0) − l·t + ln(1 + e^{−|l|}).
+    let l = &out.cell_logits;
+    let bce_t = ((l.relu()? - (l * cells)?)? + (l.abs()?.neg()?.exp()? + 1.0)?.log()?)?.mean_all()?;
+    let bce = bce_t.to_scalar::<f32>()?;
+    let (total, nll) = match (&out.mean, &out.log_var) {
+        (Some(mu), Some(s)) => {
+            let sq = (mu - targets)?.sqr()?;
+            let per = (((s.neg()?.exp()? * sq)? + s)? * 0.5)?;
+            let nll = per.mean_all()?.to_scalar::<f32>()?;
+            // β-NLL with β = 1 (Seitzer et al. 2022, "On the pitfalls of heteroscedastic
+            // uncertainty estimation"): each term weighted by its own variance, held constant.
+            // The mean then gets the gradient of a squared error, not one scaled by 1/σ², which
+            // otherwise grows as the variances shrink and swamps the cells' gradient in the shared
+            // trunk; the variance's optimum (the squared error) is unchanged.
+            let weighted = (per * s.exp()?.detach())?.mean_all()?;
+            ((bce_t + (weighted * param_weight)?)?, nll)
         }
-    }
-    if let Some(values) = &out.values {
-        let t = (values - targets)?.abs()?.mean_all()?;
-        l1 = t.to_scalar::<f32>()?;
-        let t = (t * l1_weight)?;
-        total = Some(match total {
-            Some(a) => (a + t)?,
-            None => t,
-        });
-    }
-    let total = match total {
-        Some(t) => t,
-        None => Tensor::new(0f32, classes.device())?,
+        _ => (bce_t, 0.0),
     };
-    Ok(LossTerms { total, ce, l1 })
-}
-
-/// Softmax probabilities of logits along the last dimension.
-pub fn probabilities(logits: &Tensor) -> Result<Tensor> {
-    ops::softmax(logits, D::Minus1)
+    Ok(LossTerms { total, bce, nll })
 }
 
 /// Overwrite every variable of `varmap` deterministically from `seed`: biases 0, weights
-/// He-uniform (`±√(6/fan_in)`), except the head (`±√(1/fan_in)`, so initial logits ≈ 0 and
-/// values ≈ 0.5). Variables are visited sorted by name so the result does not depend on
-/// `HashMap` order.
+/// He-uniform (`±√(6/fan_in)`), except the two heads (`±√(1/fan_in)`, so initial logits ≈ 0,
+/// means ≈ 0.5 and log-variances ≈ 0). Variables are visited sorted by name so the result does
+/// not depend on `HashMap` order.
 pub fn seeded_init(varmap: &VarMap, seed: u64) -> Result<()> {
     let data = varmap.data().lock().expect("varmap lock poisoned");
     let mut names: Vec<&String> = data.keys().collect();
@@ -184,9 +175,8 @@ pub fn seeded_init(varmap: &VarMap, seed: u64) -> Result<()> {
             vec![0.0; n]
         } else {
             let fan_in: usize = dims[1..].iter().product::<usize>().max(1);
-            let bound =
-                if name.starts_with("head.") { (1.0 / fan_in as f64).sqrt() } else { (6.0 / fan_in as f64).sqrt() }
-                    as f32;
+            let small = name.starts_with("head.") || name.starts_with("cell_head.");
+            let bound = if small { (1.0 / fan_in as f64).sqrt() } else { (6.0 / fan_in as f64).sqrt() } as f32;
             (0..n).map(|_| rng.random_range(-bound..bound)).collect()
         };
         var.set(&Tensor::from_vec(vals, dims, &Device::Cpu)?)?;
@@ -216,62 +206,74 @@ mod tests {
     use super::*;
     use crate::net::OutputSpec;
 
-    fn spec(features: FeatureType) -> NetSpec {
-        let mut s = NetSpec::new(
-            16,
-            vec!["a".into(), "b".into(), "c".into()],
-            vec![OutputSpec::continuous("x", 0.0, 1.0), OutputSpec::integer("n", 1, 7)],
-        );
-        s.backbone = vec![4, 8];
-        s.hidden = 16;
-        s.features = features;
+    fn spec() -> NetSpec {
+        let mut s = NetSpec::new(16, vec![OutputSpec::continuous("x", 0.0, 1.0), OutputSpec::integer("n", 1, 7)]);
+        (s.backbone, s.px_per_cell, s.cell_convs, s.hidden) = (vec![4, 8], 4, vec![8], 16);
         s
     }
 
     #[test]
-    fn forward_shapes_and_ranges() -> Result<()> {
-        for f in [FeatureType::Gram, FeatureType::Pooled, FeatureType::Both] {
-            let s = spec(f);
-            let (_vm, net) = build(&s, 1)?;
-            let x = Tensor::randn(0f32, 1.0, (5, 3, 16, 16), &Device::Cpu)?;
-            assert_eq!(net.features(&x)?.dims(), &[5, feature_dim(&s)]);
+    fn forward_shapes_and_ranges_for_any_number_of_cells() -> Result<()> {
+        let s = spec();
+        let (_vm, net) = build(&s, 1)?;
+        for (h, w) in [(16, 16), (12, 20)] {
+            let x = Tensor::randn(0f32, 1.0, (5, 4, h, w), &Device::Cpu)?;
             let out = net.forward(&x)?;
-            assert_eq!(out.logits.as_ref().unwrap().dims(), &[5, 3]);
-            let v = out.values.unwrap();
-            assert_eq!(v.dims(), &[5, 2]);
-            for row in v.to_vec2::<f32>()? {
-                assert!(row.iter().all(|&t| t > 0.0 && t < 1.0));
-            }
+            assert_eq!(out.cell_logits.dims(), &[5, h / 4, w / 4]);
+            let m = out.mean.unwrap();
+            assert_eq!(m.dims(), &[5, 2]);
+            assert!(m.flatten_all()?.to_vec1::<f32>()?.iter().all(|&t| t > 0.0 && t < 1.0));
+            let s = out.log_var.unwrap().flatten_all()?.to_vec1::<f32>()?;
+            assert!(s.iter().all(|&v| (LOG_VAR_RANGE.0 as f32..=LOG_VAR_RANGE.1 as f32).contains(&v)));
         }
         Ok(())
     }
 
     #[test]
-    fn gram_upper_triangle_matches_direct_computation() -> Result<()> {
-        // With a 1-block Gram-only net, the features must equal ln(1 + Σ_p f_i(p) f_j(p) / (H·W)), i ≤ j.
-        let mut s = spec(FeatureType::Gram);
-        s.backbone = vec![3];
-        s.input_size = 2;
-        let (_vm, net) = build(&s, 3)?;
-        let x = Tensor::randn(0f32, 1.0, (1, 3, 2, 2), &Device::Cpu)?;
-        let f = net.features(&x)?.flatten_all()?.to_vec1::<f32>()?;
-        let a = x.apply(&net.blocks[0][0])?.relu()?.flatten_all()?.to_vec1::<f32>()?;
-        let mut k = 0;
-        for i in 0..3 {
-            for j in i..3 {
-                let g: f32 = (0..4).map(|p| a[i * 4 + p] * a[j * 4 + p]).sum::<f32>() / 4.0;
-                let g = g.ln_1p();
-                assert!((g - f[k]).abs() < 1e-5, "({i},{j}): {g} vs {}", f[k]);
-                k += 1;
+    fn cell_logits_are_local() -> Result<()> {
+        // Changing the pixels of one corner cell must leave far cells' logits unchanged: the
+        // receptive field of a cell is a few cells, not the image (translation equivariance).
+        let s = spec();
+        let (_vm, net) = build(&s, 2)?;
+        let x = Tensor::randn(0f32, 1.0, (1, 4, 32, 32), &Device::Cpu)?;
+        let mut v = x.flatten_all()?.to_vec1::<f32>()?;
+        for c in 0..4 {
+            for y in 0..4 {
+                for xx in 0..4 {
+                    v[c * 1024 + y * 32 + xx] += 3.0;
+                }
             }
         }
-        assert_eq!(k, f.len());
+        let y = Tensor::from_vec(v, (1, 4, 32, 32), &Device::Cpu)?;
+        let a = net.forward(&x)?.cell_logits.flatten_all()?.to_vec1::<f32>()?;
+        let b = net.forward(&y)?.cell_logits.flatten_all()?.to_vec1::<f32>()?;
+        assert_ne!(a[0], b[0], "the changed cell's own logit must change");
+        assert_eq!(a[63], b[63], "the opposite corner cell is out of reach");
+        Ok(())
+    }
+
+    #[test]
+    fn loss_matches_the_formulas() -> Result<()> {
+        let d = &Device::Cpu;
+        let out = NetOutput {
+            cell_logits: Tensor::new(&[[[2.0f32, -1.0]]], d)?,
+            mean: Some(Tensor::new(&[[0.3f32]], d)?),
+            log_var: Some(Tensor::new(&[[-1.0f32]], d)?),
+        };
+        let cells = Tensor::new(&[[[1.0f32, 1.0]]], d)?;
+        let t = Tensor::new(&[[0.5f32]], d)?;
+        let l = loss(&out, &cells, &t, 2.0)?;
+        let bce = ((1.0 + (-2.0f32).exp()).ln() + (1.0 + 1.0f32.exp()).ln()) / 2.0;
+        let nll = 0.5 * (1.0f32.exp() * 0.04 - 1.0);
+        assert!((l.bce - bce).abs() < 1e-5 && (l.nll - nll).abs() < 1e-5, "{l:?}");
+        let beta = (-1.0f32).exp() * nll;
+        assert!((l.total.to_scalar::<f32>()? - (bce + 2.0 * beta)).abs() < 1e-5);
         Ok(())
     }
 
     #[test]
     fn seeded_init_is_deterministic() -> Result<()> {
-        let s = spec(FeatureType::Both);
+        let s = spec();
         let dump = |vm: &VarMap| -> Vec<Vec<f32>> {
             let d = vm.data().lock().unwrap();
             let mut k: Vec<_> = d.keys().cloned().collect();

@@ -1,20 +1,29 @@
-//! Training: AdamW on cross-entropy + L1, seeded and resumable.
+//! Training: AdamW on the cells' cross-entropy plus the outputs' Gaussian likelihood, seeded,
+//! augmented and resumable.
 //!
 //! * The validation split is a pure function of each [`Sample::seed`] (a hash), so it does not
 //!   depend on the order of the samples or on the training seed.
-//! * Initial weights come from [`super::model::seeded_init`]; each epoch's shuffle comes from a
-//!   `StdRng` seeded with `(cfg.seed, epoch)`. Same data + same config ⇒ the same weights.
+//! * Initial weights come from [`super::model::seeded_init`]; each epoch's shuffle and each
+//!   sample's augmentation come from a `StdRng` seeded with `(cfg.seed, epoch)`. Same data + same
+//!   config ⇒ the same weights.
+//! * Augmentation: each training view goes through one of the 8 symmetries of the square
+//!   (flips and transposes). A flip keeps every cell's over/under; a transpose turns wefts into
+//!   warps, so it flips every cell's label and swaps the weft and warp outputs
+//!   ([`super::weft_warp_partner`]). Validation views are never augmented.
 //! * The optimiser is a small AdamW of our own (decoupled weight decay on weights, not biases)
 //!   whose moments are saved with the checkpoint, so resuming after epoch k reproduces the
 //!   uninterrupted run bit for bit.
 //! * `out/checkpoint.safetensors` is rewritten atomically after every epoch (weights, Adam
 //!   moments, epoch, step, history, spec, config). At the end `out/model.safetensors`,
-//!   `out/history.json`, `out/report.md` and `out/loss.png` are written.
+//!   `out/history.json`, `out/report.md` and `out/curves.png` are written.
 
 use super::infer::{decode_f32, write_safetensors_atomic};
-use super::model::{self, loss, NetOutput, PreNet};
-use super::report::{EpochStats, OutputError, TrainReport};
-use super::{check_image, preprocess, FeatureType, NetSpec, FORMAT_MODEL, META_FORMAT, META_METRICS, META_SPEC};
+use super::model::{self, loss, PreNet};
+use super::report::{ClassStats, EpochStats, OutputError, TrainReport};
+use super::{
+    check_image, preprocess, weft_warp_partner, NetSpec, FORMAT_MODEL, INPUT_CHANNELS, META_FORMAT, META_METRICS,
+    META_SPEC,
+};
 use crate::progress::{NoProgress, Progress};
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor, Var};
@@ -27,17 +36,30 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::time::Instant;
 
-/// One training example.
+/// One training example: a view at the network's pixels per cell with its cell labels.
 #[derive(Debug, Clone)]
 pub struct Sample {
-    /// Rendered image, linear RGB, any size ≥ 8 px.
+    /// The view, linear RGB, [`NetSpec::input_size`] square.
     pub image: Rgb32FImage,
-    /// Pattern class index into [`NetSpec::classes`].
+    /// The weave pattern `pattern[i][j]` (weft `i` over warp `j`), `n_e` rows of `n_a`.
+    pub pattern: Vec<Vec<bool>>,
+    /// For each cell of the view's grid (rows from the top), the pattern cell `i·n_a + j` it
+    /// shows (`datagen::view_cell_map`).
+    pub view_cells: Vec<Vec<usize>>,
+    /// Dataset class index into [`NetSpec::classes`] (reporting only).
     pub class: usize,
     /// Range-normalised targets in `[0,1]`, in the order of [`NetSpec::outputs`].
     pub targets: Vec<f32>,
     /// The seed the sample was generated with; decides the train/validation split.
     pub seed: u64,
+}
+
+impl Sample {
+    /// The over/under label of every cell of the view's grid (rows from the top), 1 = weft on top.
+    pub fn cell_labels(&self) -> Vec<Vec<bool>> {
+        let n_a = self.pattern.first().map_or(1, |r| r.len());
+        self.view_cells.iter().map(|row| row.iter().map(|&c| self.pattern[c / n_a][c % n_a]).collect()).collect()
+    }
 }
 
 /// Learning-rate schedule (TOML: `schedule = { kind = "cosine", final_fraction = 0.01 }`).
@@ -85,11 +107,11 @@ pub struct TrainConfig {
     pub threads: usize,
     /// Fraction of samples held out for validation (by hashing [`Sample::seed`]).
     pub val_fraction: f64,
-    /// Overrides [`NetSpec::features`] when set.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub features: Option<FeatureType>,
-    /// Weight of the L1 term relative to the cross-entropy.
-    pub l1_weight: f64,
+    /// Weight of the outputs' Gaussian negative log-likelihood relative to the cells'
+    /// cross-entropy.
+    pub param_weight: f64,
+    /// Apply the 8 symmetries of the square to the training views (see the module docs).
+    pub augment: bool,
     /// Stop this call after this many epochs in total (the schedule still spans `epochs`);
     /// continue later with `resume`. For time budgets and interrupted runs.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -107,8 +129,8 @@ impl Default for TrainConfig {
             seed: 0,
             threads: 0,
             val_fraction: 0.1,
-            features: None,
-            l1_weight: 1.0,
+            param_weight: 1.0,
+            augment: true,
             stop_after: None,
         }
     }
@@ -192,101 +214,236 @@ impl AdamW {
     }
 }
 
-/// Input tensors of the whole data set.
+/// The preprocessed data set.
 struct Data {
-    x: Tensor,
-    classes: Tensor,
-    targets: Tensor,
-    class_vec: Vec<u32>,
-    target_vec: Vec<f32>,
+    /// Per sample: `INPUT_CHANNELS × S × S` input values.
+    x: Vec<Vec<f32>>,
+    /// Per sample: `g × g` cell labels (0/1), rows from the top.
+    cells: Vec<Vec<f32>>,
+    /// Per sample: normalised targets.
+    targets: Vec<Vec<f32>>,
+    side: usize,
+    grid: usize,
+    /// For each output, the index of its weft/warp partner (itself when it has none).
+    partner: Vec<usize>,
+}
+
+/// Source position `(row, column)` in an `n × n` square of output position `(y, x)` under
+/// symmetry `d` of the square: bit 0 flips x, bit 1 flips y, bit 2 transposes.
+fn dihedral(d: u8, n: usize, y: usize, x: usize) -> (usize, usize) {
+    let (mut a, mut b) = (y, x);
+    if d & 1 != 0 {
+        b = n - 1 - b;
+    }
+    if d & 2 != 0 {
+        a = n - 1 - a;
+    }
+    if d & 4 != 0 {
+        (a, b) = (b, a);
+    }
+    (a, b)
 }
 
 impl Data {
-    fn batch(&self, idx: &[u32]) -> candle_core::Result<(Tensor, Tensor, Tensor)> {
-        let ix = Tensor::new(idx, &Device::Cpu)?;
-        Ok((self.x.index_select(&ix, 0)?, self.classes.index_select(&ix, 0)?, self.targets.index_select(&ix, 0)?))
+    /// Batch tensors `(x, cells, targets)` of samples `idx`, sample `k` under symmetry `sym[k]`.
+    fn batch(&self, idx: &[u32], sym: &[u8]) -> candle_core::Result<(Tensor, Tensor, Tensor)> {
+        let (s, g) = (self.side, self.grid);
+        let no = self.partner.len();
+        let mut xs = Vec::with_capacity(idx.len() * INPUT_CHANNELS * s * s);
+        let mut cs = Vec::with_capacity(idx.len() * g * g);
+        let mut ts = Vec::with_capacity(idx.len() * no);
+        for (k, &i) in idx.iter().enumerate() {
+            let (i, d) = (i as usize, sym[k]);
+            let x = &self.x[i];
+            for c in 0..INPUT_CHANNELS {
+                for y in 0..s {
+                    for xx in 0..s {
+                        let (a, b) = dihedral(d, s, y, xx);
+                        xs.push(x[c * s * s + a * s + b]);
+                    }
+                }
+            }
+            let transposed = d & 4 != 0;
+            for y in 0..g {
+                for xx in 0..g {
+                    let (a, b) = dihedral(d, g, y, xx);
+                    let v = self.cells[i][a * g + b];
+                    cs.push(if transposed { 1.0 - v } else { v });
+                }
+            }
+            for o in 0..no {
+                ts.push(self.targets[i][if transposed { self.partner[o] } else { o }]);
+            }
+        }
+        let dev = &Device::Cpu;
+        Ok((
+            Tensor::from_vec(xs, (idx.len(), INPUT_CHANNELS, s, s), dev)?,
+            Tensor::from_vec(cs, (idx.len(), g, g), dev)?,
+            Tensor::from_vec(ts, (idx.len(), no), dev)?,
+        ))
     }
 }
 
 fn prepare(samples: &[Sample], spec: &NetSpec) -> Result<Data> {
-    let (nc, no) = (spec.n_classes(), spec.n_outputs());
+    let no = spec.n_outputs();
+    let (side, grid) = (spec.input_size, spec.cells());
     for (i, s) in samples.iter().enumerate() {
-        check_image(&s.image).with_context(|| format!("sample {i} (seed {})", s.seed))?;
-        if nc > 0 && s.class >= nc {
-            bail!("sample {i}: class {} out of range (spec has {nc} classes)", s.class);
+        let ctx = || format!("sample {i} (seed {})", s.seed);
+        check_image(&s.image).with_context(ctx)?;
+        if s.image.dimensions() != (side as u32, side as u32) {
+            bail!("{}: image is {:?} px, the spec's views are {side}×{side}", ctx(), s.image.dimensions());
         }
         if s.targets.len() != no {
-            bail!("sample {i}: {} targets, the spec has {no} outputs", s.targets.len());
+            bail!("{}: {} targets, the spec has {no} outputs", ctx(), s.targets.len());
         }
         if let Some(t) = s.targets.iter().find(|t| !(0.0..=1.0).contains(*t)) {
-            bail!("sample {i}: target {t} is not normalised to [0,1]");
+            bail!("{}: target {t} is not normalised to [0,1]", ctx());
+        }
+        let n_a = s.pattern.first().map_or(0, |r| r.len());
+        let cells = s.pattern.len() * n_a;
+        if n_a == 0 || s.pattern.iter().any(|r| r.len() != n_a) {
+            bail!("{}: the pattern is empty or ragged", ctx());
+        }
+        if s.view_cells.len() != grid || s.view_cells.iter().any(|r| r.len() != grid || r.iter().any(|&c| c >= cells)) {
+            bail!("{}: the view's cell map is not {grid}×{grid} cells of the pattern", ctx());
+        }
+        if !spec.classes.is_empty() && s.class >= spec.classes.len() {
+            bail!("{}: class {} out of range (spec has {} classes)", ctx(), s.class, spec.classes.len());
         }
     }
-    let n = samples.len();
-    let sz = spec.input_size;
-    let pix: Vec<Vec<f32>> = samples.par_iter().map(|s| preprocess(&s.image, spec)).collect();
-    let x = Tensor::from_vec(pix.concat(), (n, 3, sz, sz), &Device::Cpu)?;
-    let class_vec: Vec<u32> = samples.iter().map(|s| s.class as u32).collect();
-    let target_vec: Vec<f32> = samples.iter().flat_map(|s| s.targets.iter().copied()).collect();
-    Ok(Data {
-        x,
-        classes: Tensor::new(class_vec.as_slice(), &Device::Cpu)?,
-        targets: Tensor::from_vec(target_vec.clone(), (n, no), &Device::Cpu)?,
-        class_vec,
-        target_vec,
-    })
+    let x: Vec<Vec<f32>> = samples.par_iter().map(|s| preprocess(&s.image, spec.px_per_cell).0).collect();
+    let cells = samples.iter().map(|s| s.cell_labels().iter().flatten().map(|&b| b as u8 as f32).collect()).collect();
+    let partner = spec
+        .outputs
+        .iter()
+        .enumerate()
+        .map(|(k, o)| {
+            weft_warp_partner(&o.name).and_then(|p| spec.outputs.iter().position(|q| q.name == p)).unwrap_or(k)
+        })
+        .collect();
+    Ok(Data { x, cells, targets: samples.iter().map(|s| s.targets.clone()).collect(), side, grid, partner })
 }
 
 /// Results of evaluating a subset.
 pub(crate) struct Eval {
     pub loss: f32,
-    pub accuracy: Option<f32>,
-    pub confusion: Vec<Vec<u32>>,
+    pub bce: f32,
+    pub grid_accuracy: f32,
+    pub cell_accuracy: f32,
+    pub pattern_exact: f32,
+    pub cell_confusion: [[u32; 2]; 2],
+    pub per_class: Vec<ClassStats>,
     pub errors: Vec<OutputError>,
+    pub ply_exact: Option<f32>,
 }
 
-fn evaluate(net: &PreNet, data: &Data, idx: &[u32], cfg: &TrainConfig) -> Result<Eval> {
+/// Pattern cell logits of one view: the mean of the grid logits over the grid cells that show
+/// each pattern cell (`view_cells`), `n_cells` values (`i·n_a + j`); NaN for a cell not in view.
+pub fn pattern_logits(grid_logits: &[f32], view_cells: &[Vec<usize>], n_cells: usize) -> Vec<f32> {
+    let mut sum = vec![0.0f32; n_cells];
+    let mut n = vec![0u32; n_cells];
+    for (l, &c) in grid_logits.iter().zip(view_cells.iter().flatten()) {
+        sum[c] += l;
+        n[c] += 1;
+    }
+    sum.iter().zip(&n).map(|(s, &k)| if k > 0 { s / k as f32 } else { f32::NAN }).collect()
+}
+
+fn evaluate(net: &PreNet, data: &Data, samples: &[Sample], idx: &[u32], cfg: &TrainConfig) -> Result<Eval> {
     let spec = net.spec();
-    let (nc, no) = (spec.n_classes(), spec.n_outputs());
-    let mut confusion = vec![vec![0u32; nc]; nc];
-    let mut preds: Vec<f32> = Vec::with_capacity(idx.len() * no);
-    let mut loss_sum = 0.0f64;
+    let no = spec.n_outputs();
+    let g2 = data.grid * data.grid;
+    let (mut mean, mut log_var, mut grid_logits) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut loss_sum, mut bce_sum) = (0.0f64, 0.0f64);
     for chunk in idx.chunks(cfg.batch_size.max(1)) {
-        let (x, c, t) = data.batch(chunk)?;
-        let out: NetOutput = net.forward(&x)?;
-        loss_sum += loss(&out, &c, &t, cfg.l1_weight)?.total.to_scalar::<f32>()? as f64 * chunk.len() as f64;
-        if let Some(l) = &out.logits {
-            let am = l.argmax(1)?.to_vec1::<u32>()?;
-            for (&i, p) in chunk.iter().zip(am) {
-                confusion[data.class_vec[i as usize] as usize][p as usize] += 1;
-            }
-        }
-        if let Some(v) = &out.values {
-            preds.extend(v.flatten_all()?.to_vec1::<f32>()?);
+        let (x, c, t) = data.batch(chunk, &vec![0; chunk.len()])?;
+        let out = net.forward(&x)?;
+        let l = loss(&out, &c, &t, cfg.param_weight)?;
+        loss_sum += l.total.to_scalar::<f32>()? as f64 * chunk.len() as f64;
+        bce_sum += l.bce as f64 * chunk.len() as f64;
+        grid_logits.extend(out.cell_logits.flatten_all()?.to_vec1::<f32>()?);
+        if let (Some(m), Some(s)) = (&out.mean, &out.log_var) {
+            mean.extend(m.flatten_all()?.to_vec1::<f32>()?);
+            log_var.extend(s.flatten_all()?.to_vec1::<f32>()?);
         }
     }
-    let accuracy = (nc > 1).then(|| {
-        let right: u32 = (0..nc).map(|i| confusion[i][i]).sum();
-        right as f32 / idx.len().max(1) as f32
-    });
+    let n = idx.len().max(1);
+    let mut confusion = [[0u32; 2]; 2];
+    let (mut grid_right, mut cells_right, mut cells_total, mut exact) = (0usize, 0usize, 0usize, 0usize);
+    let mut per_class: Vec<ClassStats> = spec
+        .classes
+        .iter()
+        .map(|c| ClassStats { name: c.clone(), views: 0, cells: 0, cells_right: 0, exact: 0 })
+        .collect();
+    for (r, &i) in idx.iter().enumerate() {
+        let (s, gl) = (&samples[i as usize], &grid_logits[r * g2..(r + 1) * g2]);
+        for (l, &t) in gl.iter().zip(&data.cells[i as usize]) {
+            grid_right += ((*l > 0.0) == (t > 0.5)) as usize;
+        }
+        let n_a = s.pattern[0].len();
+        let pl = pattern_logits(gl, &s.view_cells, s.pattern.len() * n_a);
+        let mut right = 0;
+        for (c, l) in pl.iter().enumerate() {
+            let truth = s.pattern[c / n_a][c % n_a];
+            let said = *l > 0.0;
+            confusion[truth as usize][said as usize] += 1;
+            right += (said == truth) as usize;
+        }
+        cells_right += right;
+        cells_total += pl.len();
+        exact += (right == pl.len()) as usize;
+        if let Some(cs) = per_class.get_mut(s.class) {
+            cs.views += 1;
+            cs.cells += pl.len();
+            cs.cells_right += right;
+            cs.exact += (right == pl.len()) as usize;
+        }
+    }
+    let mut ply_exact = None;
     let errors = spec
         .outputs
         .iter()
         .enumerate()
         .map(|(k, o)| {
-            let truth: Vec<f32> = idx.iter().map(|&i| data.target_vec[i as usize * no + k]).collect();
-            let mae = truth.iter().enumerate().map(|(r, &t)| (preds[r * no + k] - t).abs() as f64).sum::<f64>()
-                / truth.len().max(1) as f64;
+            let truth: Vec<f32> = idx.iter().map(|&i| data.targets[i as usize][k]).collect();
+            let pred: Vec<f32> = (0..idx.len()).map(|r| mean.get(r * no + k).copied().unwrap_or(0.5)).collect();
+            let sd: Vec<f32> =
+                (0..idx.len()).map(|r| (0.5 * log_var.get(r * no + k).copied().unwrap_or(0.0)).exp()).collect();
+            let mae = truth.iter().zip(&pred).map(|(t, p)| (p - t).abs() as f64).sum::<f64>() / n as f64;
+            let rmse = (truth.iter().zip(&pred).map(|(t, p)| ((p - t) as f64).powi(2)).sum::<f64>() / n as f64).sqrt();
+            let within = truth.iter().zip(&pred).zip(&sd).filter(|((t, p), s)| (*p - *t).abs() <= 2.0 * *s).count();
+            let mut sorted_abs: Vec<f32> = truth.iter().zip(&pred).map(|(t, p)| (p - t).abs()).collect();
+            sorted_abs.sort_by(f32::total_cmp);
+            if o.integer && o.name == "n_p" {
+                let right = truth.iter().zip(&pred).filter(|(t, p)| o.denormalise(**p) == o.denormalise(**t)).count();
+                ply_exact = Some(right as f32 / n as f32);
+            }
+            let mut sd_sorted = sd.clone();
+            sd_sorted.sort_by(f32::total_cmp);
             OutputError {
                 name: o.name.clone(),
                 mae: mae as f32,
+                median_error: sorted_abs.get(sorted_abs.len() / 2).copied().unwrap_or(0.0),
                 mae_units: mae * (o.max - o.min),
                 chance: chance_error(&truth),
                 baseline: median_error(&truth),
+                rmse: rmse as f32,
+                median_sigma: sd_sorted.get(sd_sorted.len() / 2).copied().unwrap_or(0.0),
+                within_2_sigma: within as f32 / n as f32,
             }
         })
         .collect();
-    Ok(Eval { loss: (loss_sum / idx.len().max(1) as f64) as f32, accuracy, confusion, errors })
+    Ok(Eval {
+        loss: (loss_sum / n as f64) as f32,
+        bce: (bce_sum / n as f64) as f32,
+        grid_accuracy: grid_right as f32 / (n * g2) as f32,
+        cell_accuracy: cells_right as f32 / cells_total.max(1) as f32,
+        pattern_exact: exact as f32 / n as f32,
+        cell_confusion: confusion,
+        per_class,
+        errors,
+        ply_exact,
+    })
 }
 
 /// Mean |t − median(t)|: the error of always answering the median (1/4 for uniform targets).
@@ -329,6 +486,12 @@ fn fingerprint(samples: &[Sample]) -> u64 {
     for s in samples {
         h = splitmix64(h ^ s.seed);
         h = splitmix64(h ^ s.class as u64);
+        for c in s.view_cells.iter().flatten() {
+            h = splitmix64(h ^ *c as u64);
+        }
+        for b in s.pattern.iter().flatten() {
+            h = splitmix64(h ^ *b as u64);
+        }
         for t in &s.targets {
             h = splitmix64(h ^ t.to_bits() as u64);
         }
@@ -338,7 +501,7 @@ fn fingerprint(samples: &[Sample]) -> u64 {
     h
 }
 
-const CKPT_FORMAT: &str = "woven-checkpoint-v1";
+const CKPT_FORMAT: &str = "woven-checkpoint-v2";
 const META_CKPT: &str = "woven.checkpoint";
 
 fn save_checkpoint(path: &Path, varmap: &VarMap, opt: &AdamW, spec: &NetSpec, meta: &CheckpointMeta) -> Result<()> {
@@ -398,7 +561,7 @@ fn load_checkpoint(path: &Path, opt: &mut AdamW, spec: &NetSpec) -> Result<Check
 /// Train the pre-estimator on `samples` and write everything into the directory `out`
 /// (created if needed): `checkpoint.safetensors` after each epoch, and at the end
 /// `model.safetensors` (weights + spec + metrics in the metadata), `history.json`, `report.md`
-/// and `loss.png`. With `resume`, training continues from `out/checkpoint.safetensors` if it
+/// and `curves.png`. With `resume`, training continues from `out/checkpoint.safetensors` if it
 /// exists (it must have been made with the same spec and data).
 pub fn train(samples: &[Sample], spec: &NetSpec, cfg: &TrainConfig, out: &Path, resume: bool) -> Result<TrainReport> {
     train_with_progress(samples, spec, cfg, out, resume, &NoProgress)
@@ -432,10 +595,6 @@ fn train_inner(
     progress: &dyn Progress,
 ) -> Result<TrainReport> {
     let t0 = Instant::now();
-    let mut spec = spec.clone();
-    if let Some(f) = cfg.features {
-        spec.features = f;
-    }
     spec.validate()?;
     if samples.is_empty() {
         bail!("no training samples");
@@ -444,7 +603,7 @@ fn train_inner(
         bail!("batch_size must be positive");
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let data = prepare(samples, &spec)?;
+    let data = prepare(samples, spec)?;
     let (mut train_idx, mut val_idx) = (Vec::new(), Vec::new());
     for (i, s) in samples.iter().enumerate() {
         if is_validation(s.seed, cfg.val_fraction) {
@@ -456,14 +615,14 @@ fn train_inner(
     if train_idx.is_empty() {
         bail!("all {} samples fell into the validation split", samples.len());
     }
-    let (varmap, net) = model::build(&spec, cfg.seed)?;
+    let (varmap, net) = model::build(spec, cfg.seed)?;
     let mut opt = AdamW::new(&varmap, cfg.weight_decay)?;
     let fp = fingerprint(samples);
     let ckpt = out.join("checkpoint.safetensors");
     let mut history: Vec<EpochStats> = Vec::new();
     let mut start_epoch = 0;
     if resume && ckpt.exists() {
-        let meta = load_checkpoint(&ckpt, &mut opt, &spec)?;
+        let meta = load_checkpoint(&ckpt, &mut opt, spec)?;
         if meta.fingerprint != fp {
             bail!("checkpoint {} was made with different training data", ckpt.display());
         }
@@ -482,30 +641,34 @@ fn train_inner(
         let mut order = train_idx.clone();
         let mut rng = StdRng::seed_from_u64(splitmix64(cfg.seed ^ splitmix64(epoch as u64 + 1)));
         order.shuffle(&mut rng);
+        let sym: Vec<u8> = order.iter().map(|_| if cfg.augment { rng.random_range(0..8u8) } else { 0 }).collect();
         progress.begin(&format!("epoch {}/{}", epoch + 1, cfg.epochs), steps_per_epoch as u64);
-        let (mut sum, mut count) = (0.0f64, 0usize);
+        let (mut sum, mut bce_sum, mut count) = (0.0f64, 0.0f64, 0usize);
         let mut lr = cfg.lr;
-        for (b, chunk) in order.chunks(cfg.batch_size).enumerate() {
+        for (b, (chunk, sym)) in order.chunks(cfg.batch_size).zip(sym.chunks(cfg.batch_size)).enumerate() {
             lr = cfg.lr_at(epoch, epoch * steps_per_epoch + b, steps_per_epoch);
-            let (x, c, t) = data.batch(chunk)?;
-            let l = loss(&net.forward(&x)?, &c, &t, cfg.l1_weight)?;
+            let (x, c, t) = data.batch(chunk, sym)?;
+            let l = loss(&net.forward(&x)?, &c, &t, cfg.param_weight)?;
             opt.step(&l.total, lr)?;
             let v = l.total.to_scalar::<f32>()?;
             if !v.is_finite() {
                 bail!("training diverged (loss {v}) at epoch {} batch {b}; lower the learning rate", epoch + 1);
             }
             sum += v as f64 * chunk.len() as f64;
+            bce_sum += l.bce as f64 * chunk.len() as f64;
             count += chunk.len();
             progress.advance(1);
-            progress.message(&format!("loss {:.4} (ce {:.3} l1 {:.3})", sum / count as f64, l.ce, l.l1));
+            progress.message(&format!("loss {:.4} (cells {:.3}, outputs {:.3})", sum / count as f64, l.bce, l.nll));
         }
-        let train_loss = (sum / count as f64) as f32;
-        let ev = if val_idx.is_empty() { None } else { Some(evaluate(&net, &data, &val_idx, cfg)?) };
+        let ev = if val_idx.is_empty() { None } else { Some(evaluate(&net, &data, samples, &val_idx, cfg)?) };
         let stats = EpochStats {
             epoch: epoch + 1,
-            train_loss,
+            train_loss: (sum / count as f64) as f32,
+            train_cell_loss: (bce_sum / count as f64) as f32,
             val_loss: ev.as_ref().map(|e| e.loss),
-            val_accuracy: ev.as_ref().and_then(|e| e.accuracy),
+            val_cell_loss: ev.as_ref().map(|e| e.bce),
+            val_cell_accuracy: ev.as_ref().map(|e| e.cell_accuracy),
+            val_pattern_exact: ev.as_ref().map(|e| e.pattern_exact),
             lr,
             seconds: te.elapsed().as_secs_f64(),
         };
@@ -519,27 +682,30 @@ fn train_inner(
             fingerprint: fp,
             config: cfg.clone(),
         };
-        save_checkpoint(&ckpt, &varmap, &opt, &spec, &meta)?;
+        save_checkpoint(&ckpt, &varmap, &opt, spec, &meta)?;
     }
     let (eval_set, idx) =
         if val_idx.is_empty() { ("training (no validation samples)", &train_idx) } else { ("validation", &val_idx) };
-    let ev = evaluate(&net, &data, idx, cfg)?;
+    let ev = evaluate(&net, &data, samples, idx, cfg)?;
     let report = TrainReport {
-        class_names: spec.classes.clone(),
         epochs: history,
         eval_set: eval_set.to_string(),
         n_train: train_idx.len(),
         n_val: val_idx.len(),
-        accuracy: ev.accuracy,
-        confusion: ev.confusion,
+        grid_cell_accuracy: ev.grid_accuracy,
+        cell_accuracy: ev.cell_accuracy,
+        pattern_exact: ev.pattern_exact,
+        cell_confusion: ev.cell_confusion,
+        per_class: ev.per_class,
         output_errors: ev.errors,
+        ply_exact: ev.ply_exact,
         eval_loss: ev.loss,
         wall_seconds: t0.elapsed().as_secs_f64(),
     };
-    save_model(&out.join("model.safetensors"), &varmap, &spec, Some(&report))?;
+    save_model(&out.join("model.safetensors"), &varmap, spec, Some(&report))?;
     super::infer::write_atomic(&out.join("history.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     report.write_markdown(&out.join("report.md"))?;
-    report.write_curves_png(&out.join("loss.png"))?;
+    report.write_curves_png(&out.join("curves.png"))?;
     Ok(report)
 }
 
@@ -559,18 +725,18 @@ pub fn save_model(path: &Path, varmap: &VarMap, spec: &NetSpec, report: Option<&
 }
 
 /// Milliseconds per training step (forward + backward + AdamW) for a batch of `batch` random
-/// images at `spec.input_size`, averaged over `steps` steps after one warm-up step. Runs on the
+/// views at `spec.input_size`, averaged over `steps` steps after one warm-up step. Runs on the
 /// current rayon pool.
 pub fn bench_train_step(spec: &NetSpec, batch: usize, steps: usize) -> Result<f64> {
     spec.validate()?;
     let (varmap, net) = model::build(spec, 0)?;
     let mut opt = AdamW::new(&varmap, 1e-4)?;
     let mut rng = StdRng::seed_from_u64(1);
-    let s = spec.input_size;
-    let xs: Vec<f32> = (0..batch * 3 * s * s).map(|_| rng.random_range(-2.0..2.0)).collect();
-    let x = Tensor::from_vec(xs, (batch, 3, s, s), &Device::Cpu)?;
-    let c: Vec<u32> = (0..batch).map(|i| (i % spec.n_classes().max(1)) as u32).collect();
-    let c = Tensor::new(c.as_slice(), &Device::Cpu)?;
+    let (s, g) = (spec.input_size, spec.cells());
+    let xs: Vec<f32> = (0..batch * INPUT_CHANNELS * s * s).map(|_| rng.random_range(-2.0..2.0)).collect();
+    let x = Tensor::from_vec(xs, (batch, INPUT_CHANNELS, s, s), &Device::Cpu)?;
+    let cs: Vec<f32> = (0..batch * g * g).map(|i| (i % 2) as f32).collect();
+    let c = Tensor::from_vec(cs, (batch, g, g), &Device::Cpu)?;
     let ts: Vec<f32> = (0..batch * spec.n_outputs()).map(|_| rng.random_range(0.0..1.0)).collect();
     let t = Tensor::from_vec(ts, (batch, spec.n_outputs()), &Device::Cpu)?;
     let mut run = || -> Result<()> {
@@ -592,35 +758,36 @@ pub(crate) mod tests {
     use crate::net::{OutputSpec, PreEstimator};
     use image::Rgb;
 
-    /// Stripes: class 0 = horizontal, 1 = vertical; target 0 = red level, target 1 = period.
-    pub(crate) fn stripe_samples(n: usize, size: u32, seed: u64) -> Vec<Sample> {
+    /// Synthetic views at 4 px per cell, 8 × 8 cells: a random 2–4 × 2–4 pattern, randomly
+    /// shifted; a cell whose weft is on top shows a horizontal bar, else a vertical one. Target 0
+    /// is the red level, target 1 the (normalised) number of rows of the pattern.
+    pub(crate) fn bar_samples(n: usize, seed: u64) -> Vec<Sample> {
         let mut rng = StdRng::seed_from_u64(seed);
         (0..n)
             .map(|i| {
-                let class = i % 2;
+                let (n_e, n_a) = (rng.random_range(2..=4usize), rng.random_range(2..=4usize));
+                let pattern: Vec<Vec<bool>> =
+                    (0..n_e).map(|_| (0..n_a).map(|_| rng.random_bool(0.5)).collect()).collect();
+                let (sy, sx) = (rng.random_range(0..n_e), rng.random_range(0..n_a));
+                let view_cells: Vec<Vec<usize>> =
+                    (0..8).map(|r| (0..8).map(|k| ((7 - r + sy) % n_e) * n_a + (k + sx) % n_a).collect()).collect();
                 let red: f32 = rng.random_range(0.0..1.0);
-                let per: f32 = rng.random_range(0.0..1.0);
-                let period = 3.0 + 9.0 * per;
-                let phase: f32 = rng.random_range(0.0..period);
-                let image = Rgb32FImage::from_fn(size, size, |x, y| {
-                    let u = if class == 0 { y } else { x } as f32;
-                    let on = ((u + phase) / period).fract() < 0.5;
+                let image = Rgb32FImage::from_fn(32, 32, |x, y| {
+                    let c = view_cells[y as usize / 4][x as usize / 4];
+                    let weft = pattern[c / n_a][c % n_a];
+                    let on = if weft { (1..3).contains(&(y % 4)) } else { (1..3).contains(&(x % 4)) };
                     let v = if on { 0.8 } else { 0.1 };
-                    Rgb([v * red, v * 0.5, v * (1.0 - red)])
+                    Rgb([v * (0.2 + 0.8 * red), v * 0.5, v * (1.0 - red)])
                 });
-                Sample { image, class, targets: vec![red, per], seed: seed.wrapping_mul(1000) + i as u64 }
+                let targets = vec![red, (n_e - 2) as f32 / 2.0];
+                Sample { image, pattern, view_cells, class: 0, targets, seed: seed.wrapping_mul(1000) + i as u64 }
             })
             .collect()
     }
 
     pub(crate) fn tiny_spec() -> NetSpec {
-        let mut s = NetSpec::new(
-            32,
-            vec!["horizontal".into(), "vertical".into()],
-            vec![OutputSpec::continuous("red", 0.0, 1.0), OutputSpec::integer("period", 3, 12)],
-        );
-        s.backbone = vec![8, 16, 16];
-        s.hidden = 64;
+        let mut s = NetSpec::new(32, vec![OutputSpec::continuous("red", 0.0, 1.0), OutputSpec::integer("rows", 2, 4)]);
+        (s.px_per_cell, s.backbone, s.cell_convs, s.hidden) = (4, vec![8, 16], vec![16], 16);
         s
     }
 
@@ -642,29 +809,58 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn training_halves_the_loss() {
-        let samples = stripe_samples(32, 32, 1);
+    fn training_learns_the_cells() {
+        let samples = bar_samples(48, 1);
         let dir = tempfile::tempdir().unwrap();
-        let r = train(&samples, &tiny_spec(), &tiny_cfg(12), dir.path(), false).unwrap();
-        let first = r.epochs[0].train_loss;
-        let last = r.epochs.last().unwrap().train_loss;
-        assert!(last < 0.5 * first, "loss {first} -> {last}");
+        let r = train(&samples, &tiny_spec(), &tiny_cfg(25), dir.path(), false).unwrap();
+        let first = r.epochs[0].train_cell_loss;
+        let last = r.epochs.last().unwrap().train_cell_loss;
+        assert!(last < 0.5 * first, "cell loss {first} -> {last}");
         assert_eq!(r.eval_set, "training (no validation samples)");
-        assert!(r.accuracy.unwrap() > 0.9, "accuracy {:?}", r.accuracy);
-        for f in ["model.safetensors", "checkpoint.safetensors", "history.json", "report.md", "loss.png"] {
+        assert!(r.cell_accuracy > 0.9, "cell accuracy {}", r.cell_accuracy);
+        for f in ["model.safetensors", "checkpoint.safetensors", "history.json", "report.md", "curves.png"] {
             assert!(dir.path().join(f).exists(), "{f} missing");
         }
         let m = PreEstimator::load(&dir.path().join("model.safetensors")).unwrap();
-        assert_eq!(m.metrics().unwrap().epochs.len(), 12);
+        assert_eq!(m.metrics().unwrap().epochs.len(), 25);
+    }
+
+    #[test]
+    fn augmentation_maps_pixels_cells_and_outputs_together() {
+        // A view whose only bright pixel is in cell (row 0, column 1), label 1 there only;
+        // outputs red (no partner) and r_e / r_a (partners).
+        let mut spec = tiny_spec();
+        spec.outputs = vec![
+            OutputSpec::continuous("red", 0.0, 1.0),
+            OutputSpec::continuous("r_e", 1.0, 5.0),
+            OutputSpec::continuous("r_a", 1.0, 5.0),
+        ];
+        let mut s = bar_samples(1, 3).pop().unwrap();
+        s.image = Rgb32FImage::from_fn(32, 32, |x, y| Rgb([if (x, y) == (5, 1) { 1.0 } else { 0.1 }; 3]));
+        s.pattern = vec![vec![false, true], vec![false, false]];
+        s.view_cells = (0..8).map(|r| (0..8).map(|k| if (r, k) == (0, 1) { 1 } else { 0 }).collect()).collect();
+        s.targets = vec![0.1, 0.2, 0.7];
+        let data = prepare(&[s], &spec).unwrap();
+        for d in 0..8u8 {
+            let (x, c, t) = data.batch(&[0], &[d]).unwrap();
+            let x = x.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let c = c.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let t = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let bright = x[..1024].iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap().0;
+            let (py, px) = (bright / 32, bright % 32);
+            let marked: Vec<usize> = (0..64).filter(|&k| (c[k] > 0.5) != (d & 4 != 0)).collect();
+            assert_eq!(marked, vec![(py / 4) * 8 + px / 4], "symmetry {d}: the label moves with its pixels");
+            let want = if d & 4 != 0 { [0.1, 0.7, 0.2] } else { [0.1, 0.2, 0.7] };
+            assert_eq!(t, want, "symmetry {d}");
+        }
     }
 
     #[test]
     fn same_seed_same_weights_and_exact_resume() {
-        let samples = stripe_samples(16, 16, 2);
+        let samples = bar_samples(16, 2);
         let mut spec = tiny_spec();
-        spec.input_size = 16;
-        spec.backbone = vec![4, 8];
-        spec.hidden = 16;
+        spec.cell_convs = vec![];
+        spec.hidden = 8;
         let mut cfg = tiny_cfg(3);
         cfg.val_fraction = 0.25;
         let (a, b, c, d) = (
@@ -701,7 +897,7 @@ pub(crate) mod tests {
         let again = train(&samples, &spec, &cfg, a.path(), true).unwrap();
         assert_eq!(again.epochs.len(), 3);
         // A checkpoint from other data is refused.
-        let other_data = stripe_samples(16, 16, 3);
+        let other_data = bar_samples(16, 3);
         assert!(train(&other_data, &spec, &cfg, a.path(), true).is_err());
     }
 
@@ -725,7 +921,7 @@ pub(crate) mod tests {
     fn config_round_trips_through_toml() {
         let c = TrainConfig {
             schedule: LrSchedule::Step { every: 10, gamma: 0.5 },
-            features: Some(FeatureType::Gram),
+            augment: false,
             stop_after: Some(3),
             ..Default::default()
         };
@@ -739,13 +935,27 @@ pub(crate) mod tests {
 
     #[test]
     fn bad_samples_are_rejected() {
-        let mut s = stripe_samples(4, 16, 4);
-        s[1].targets[0] = 1.5;
         let dir = tempfile::tempdir().unwrap();
-        let e = train(&s, &tiny_spec(), &tiny_cfg(1), dir.path(), false).unwrap_err();
-        assert!(format!("{e:#}").contains("not normalised"), "{e:#}");
-        let mut s = stripe_samples(4, 16, 4);
-        s[2].class = 7;
-        assert!(train(&s, &tiny_spec(), &tiny_cfg(1), dir.path(), false).is_err());
+        type Spoil = fn(&mut Sample);
+        let cases: [(&str, Spoil); 4] = [
+            ("not normalised", |s| s.targets[0] = 1.5),
+            ("cell map", |s| s.view_cells[3][3] = 99),
+            ("px, the spec", |s| s.image = Rgb32FImage::new(40, 32)),
+            ("ragged", |s| s.pattern[1].pop().map(|_| ()).unwrap_or(())),
+        ];
+        for (want, f) in cases {
+            let mut s = bar_samples(4, 4);
+            f(&mut s[1]);
+            let e = train(&s, &tiny_spec(), &tiny_cfg(1), dir.path(), false).unwrap_err();
+            assert!(format!("{e:#}").contains(want), "{want}: {e:#}");
+        }
+    }
+
+    #[test]
+    fn pattern_logits_average_the_cells_of_the_view() {
+        let view = vec![vec![0, 1, 0], vec![2, 3, 2]];
+        let l = pattern_logits(&[1.0, -2.0, 3.0, 0.5, 4.0, 1.5], &view, 5);
+        assert_eq!(&l[..4], &[2.0, -2.0, 1.0, 4.0]);
+        assert!(l[4].is_nan(), "a cell out of view has no logit");
     }
 }
