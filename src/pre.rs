@@ -263,6 +263,16 @@ fn chrono_like_now() -> String {
     format!("{y:04}-{m:02}-{d:02}")
 }
 
+/// The shipped model's weights, built into the binary so that `woven fit` reads the fit's view
+/// with no file beside it (no download, any working folder). `woven train --ship` replaces the
+/// file; the next build embeds it.
+pub static SHIPPED_MODEL: &[u8] = include_bytes!("../models/pre_estimator.safetensors");
+
+/// The shipped model ([`SHIPPED_MODEL`]).
+pub fn shipped_model() -> Result<PreEstimator> {
+    Ok(PreEstimator::from_bytes(SHIPPED_MODEL, Path::new(DEFAULT_MODEL))?)
+}
+
 /// Load a pre-estimator model file for prediction: refuses what is not a regular file (a FIFO
 /// would block forever) before [`PreEstimator::load`] reads it; the error says how to make one.
 pub fn load_model(path: &Path) -> Result<PreEstimator> {
@@ -272,4 +282,17 @@ pub fn load_model(path: &Path) -> Result<PreEstimator> {
         Ok(_) => {}
     }
     Ok(PreEstimator::load(path)?)
+}
+
+#[cfg(test)]
+mod shipped_tests {
+    use super::*;
+
+    #[test]
+    fn the_embedded_model_equals_the_shipped_file_and_loads() {
+        let file = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_MODEL)).unwrap();
+        assert_eq!(file.as_slice(), SHIPPED_MODEL, "rebuild after `woven train --ship`");
+        let m = shipped_model().unwrap();
+        assert!(m.spec().cells() >= 8, "the shipped model reads 8×8-cell views");
+    }
 }
