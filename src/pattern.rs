@@ -340,7 +340,8 @@ impl WeavePattern {
         }
         if n.is_multiple_of(2) {
             let k = n / 2;
-            let blocks: Vec<Vec<bool>> = (0..n).map(|i| (0..n).map(|j| (i / k + j / k).is_multiple_of(2)).collect()).collect();
+            let blocks: Vec<Vec<bool>> =
+                (0..n).map(|i| (0..n).map(|j| (i / k + j / k).is_multiple_of(2)).collect()).collect();
             let b = WeavePattern { rows: n, cols: n, cells: blocks.concat() };
             if p.equivalent(&b) || p.equivalent(&b.inverted()) {
                 return WeaveClass::Basket;
