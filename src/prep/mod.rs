@@ -294,6 +294,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     }
     // 2. First pitch estimate and periodicity strength (before any regularization, which
     //    could impose structure on noise).
+    if let Ok(p) = std::env::var("PREPDBG") { let _ = crate::image_io::Image::from_rgb32f(r).save_png(std::path::Path::new(&p)); }
     let g = Gray::from_rgb(r);
     let (_, std) = g.mean_std();
     if std < 1e-4 {
@@ -301,8 +302,21 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     }
     let gb = blur_gray(&g, 1.0);
     let min_pitch = opts.min_pitch as f64;
-    let ax0 = analyze_axis(&gb, true, min_pitch).ok_or(PrepError::NoStructure)?;
-    let ay0 = analyze_axis(&gb, false, min_pitch).ok_or(PrepError::NoStructure)?;
+    // An axis whose integral projection is not periodic (twills, satins: see
+    // `grid::superposed_pitch`) gets its first pitch from the per-line autocorrelations instead.
+    let axis0 = |axis_x: bool| -> Option<AxisGrid> {
+        let a = analyze_axis(&gb, axis_x, min_pitch);
+        if a.as_ref().is_some_and(|a| a.strength >= opts.min_structure) {
+            return a;
+        }
+        match (a, grid::analyze_axis_superposed(&gb, axis_x, min_pitch)) {
+            (Some(a), Some(b)) => Some(if b.strength > a.strength { b } else { a }),
+            (a, b) => a.or(b),
+        }
+    };
+    let ax0 = axis0(true).ok_or(PrepError::NoStructure)?;
+    let ay0 = axis0(false).ok_or(PrepError::NoStructure)?;
+    if std::env::var("PREPDBG").is_ok() { eprintln!("DBG angle {:.2} ax0 {:.1} s{:.2} ay0 {:.1} s{:.2}", rect.angle_deg, ax0.pitch, ax0.strength, ay0.pitch, ay0.strength); }
     if ax0.strength < opts.min_structure || ay0.strength < opts.min_structure {
         return Err(PrepError::NoStructure);
     }
