@@ -257,6 +257,111 @@ impl WeavePattern {
     }
 }
 
+/// The weave class of a pattern, as fabric labels name it ([`WeavePattern::weave_class`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WeaveClass {
+    /// Plain (tabby): the 2×2 checker.
+    Plain,
+    /// Twill: square repeat of side ≥ 3 whose rows step by ±1 yarn (one diagonal of floats).
+    Twill,
+    /// Satin (or sateen): square repeat of side ≥ 4 with one binding point per row and per
+    /// column that does not step by ±1 (the 4-end crowfoot, steps 1, 2, −1, −2, included).
+    Satin,
+    /// Basket (hopsack): the plain weave with every cell a k×k block, k ≥ 2.
+    Basket,
+    /// Anything else (ribs, broken or figured weaves, patterns with a floating yarn).
+    Other,
+}
+
+impl WeaveClass {
+    /// Every class, in the order of the enum.
+    pub const ALL: [WeaveClass; 5] =
+        [WeaveClass::Plain, WeaveClass::Twill, WeaveClass::Satin, WeaveClass::Basket, WeaveClass::Other];
+
+    /// Lower-case name (`plain`, `twill`, `satin`, `basket`, `other`).
+    pub fn name(self) -> &'static str {
+        match self {
+            WeaveClass::Plain => "plain",
+            WeaveClass::Twill => "twill",
+            WeaveClass::Satin => "satin",
+            WeaveClass::Basket => "basket",
+            WeaveClass::Other => "other",
+        }
+    }
+}
+
+impl fmt::Display for WeaveClass {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A weave-class name that is none of [`WeaveClass::ALL`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown weave class `{0}` (known: plain, twill, satin, basket, other)")]
+pub struct UnknownClass(pub String);
+
+impl std::str::FromStr for WeaveClass {
+    type Err = UnknownClass;
+    /// Case-insensitive; `tabby` is plain, `sateen` is satin, `hopsack` is basket.
+    fn from_str(s: &str) -> Result<Self, UnknownClass> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "plain" | "tabby" => Ok(WeaveClass::Plain),
+            "twill" => Ok(WeaveClass::Twill),
+            "satin" | "sateen" => Ok(WeaveClass::Satin),
+            "basket" | "hopsack" => Ok(WeaveClass::Basket),
+            "other" => Ok(WeaveClass::Other),
+            _ => Err(UnknownClass(s.to_string())),
+        }
+    }
+}
+
+impl WeavePattern {
+    /// The weave class of the fabric this pattern makes ([`WeaveClass`]). The class depends only
+    /// on the cloth, not on how it is seen: it is the same for every cyclic shift, for the
+    /// inverted pattern (the back of the cloth), the transposed one ([`WeavePattern::rotated90`])
+    /// and the mirrored ones, because every test below is invariant under these.
+    ///
+    /// On the minimum repeat (`n × m`): a floating yarn or `n ≠ m` is `Other`; `2 × 2` is plain
+    /// (the only woven 2×2 is the checker); `2k × 2k` equal to the checker of `k × k` blocks up
+    /// to shift and inversion is basket; otherwise, when every row is the previous one shifted
+    /// by the same step `s` (`P[i+1][j+s] = P[i][j]`), `s = ±1` with `n ≥ 3` is a twill; a square
+    /// repeat of side ≥ 4 whose rows and columns each hold one cell unlike the others (one
+    /// binding point) and that is not such a twill is a satin.
+    pub fn weave_class(&self) -> WeaveClass {
+        let p = self.reduced();
+        let n = p.rows;
+        if p.has_unbound_yarn() || n != p.cols {
+            return WeaveClass::Other;
+        }
+        if n == 2 {
+            return WeaveClass::Plain;
+        }
+        if n.is_multiple_of(2) {
+            let k = n / 2;
+            let blocks: Vec<Vec<bool>> =
+                (0..n).map(|i| (0..n).map(|j| (i / k + j / k).is_multiple_of(2)).collect()).collect();
+            let b = WeavePattern { rows: n, cols: n, cells: blocks.concat() };
+            if p.equivalent(&b) || p.equivalent(&b.inverted()) {
+                return WeaveClass::Basket;
+            }
+        }
+        let steps = |s: usize| (0..n).all(|i| (0..n).all(|j| p.get(i + 1, j + s) == p.get(i, j)));
+        if steps(1) || steps(n - 1) {
+            return WeaveClass::Twill;
+        }
+        // One binding point: exactly one cell of the line differs from the others.
+        let single = |count: usize| count == 1 || count == n - 1;
+        let rows_single = (0..n).all(|i| single((0..n).filter(|&j| p.get(i, j)).count()));
+        let cols_single = (0..n).all(|j| single((0..n).filter(|&i| p.get(i, j)).count()));
+        if n >= 4 && rows_single && cols_single {
+            return WeaveClass::Satin;
+        }
+        WeaveClass::Other
+    }
+}
+
 impl WeavePattern {
     /// Check that the pattern is a woven cloth: every weft changes side at least once across the
     /// warps and every warp across the wefts. A yarn that never does (an all-ones or all-zeros row
@@ -329,6 +434,55 @@ impl<'de> Deserialize<'de> for WeavePattern {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn weave_classes_of_the_presets_and_their_views() {
+        use WeaveClass::*;
+        let want = [Plain, Basket, Twill, Twill, Twill, Satin, Satin, Satin];
+        for (name, class) in PRESETS.iter().zip(want) {
+            let p = WeavePattern::preset(name).unwrap();
+            assert_eq!(p.weave_class(), class, "{name}: {p}");
+            // The same cloth seen shifted, from the back, turned by 90° and mirrored.
+            let shifted: Vec<Vec<bool>> =
+                (0..p.n_e()).map(|i| (0..p.n_a()).map(|j| p.get(i + 1, j + 2)).collect()).collect();
+            let mirrored: Vec<Vec<bool>> = p.rows().into_iter().rev().collect();
+            for (view, q) in [
+                ("shifted", WeavePattern::from_rows(&shifted).unwrap()),
+                ("inverted", p.inverted()),
+                ("rotated", p.rotated90()),
+                ("mirrored", WeavePattern::from_rows(&mirrored).unwrap()),
+            ] {
+                assert_eq!(q.weave_class(), class, "{name} {view}: {q}");
+            }
+            // A repeat stored twice over (unreduced) is the same class.
+            let big: Vec<Vec<bool>> =
+                (0..2 * p.n_e()).map(|i| (0..2 * p.n_a()).map(|j| p.get(i, j)).collect()).collect();
+            assert_eq!(WeavePattern::from_rows_unreduced(&big).unwrap().weave_class(), class, "{name} doubled");
+        }
+    }
+
+    #[test]
+    fn weave_classes_of_other_patterns() {
+        use WeaveClass::*;
+        let class = |s: &str| WeavePattern::parse(s).unwrap().weave_class();
+        // A 3×3 basket, a 3/1 broken twill (steps +1, +1, −1… no constant step) and a 2/1/1/2 twill.
+        assert_eq!(class("111000/111000/111000/000111/000111/000111"), Basket);
+        assert_eq!(class("11010/01101/10110/01011/10101"), Twill);
+        assert_eq!(class("1110/1101/1011/0111"), Twill);
+        // Satin 7 with step 3; a rib (2×4) and a half basket are not square → other.
+        let satin7: Vec<Vec<bool>> = (0..7).map(|i| (0..7).map(|j| j != (3 * i) % 7).collect()).collect();
+        assert_eq!(WeavePattern::from_rows(&satin7).unwrap().weave_class(), Satin);
+        assert_eq!(class("1100/0011"), Other);
+        // A floating yarn is not a weave; a random 4×4 weave is other.
+        assert_eq!(class("1111/0101/1010/0101"), Other);
+        assert_eq!(class("1100/0110/1011/1001"), Other);
+        // Names parse case-insensitively, with the usual synonyms; unknown names are refused.
+        assert_eq!("Twill".parse::<WeaveClass>(), Ok(Twill));
+        assert_eq!("sateen".parse::<WeaveClass>(), Ok(Satin));
+        assert_eq!("tabby".parse::<WeaveClass>(), Ok(Plain));
+        assert!("jacquard".parse::<WeaveClass>().unwrap_err().to_string().contains("known: plain"));
+        assert_eq!(Satin.to_string(), "satin");
+    }
 
     #[test]
     fn presets_are_valid_and_minimal() {

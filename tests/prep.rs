@@ -152,3 +152,29 @@ fn clear_single_repeats_are_still_prepared() {
         assert_eq!((p.n_e, p.n_a), (n, n), "{preset} {rig}: {}", p.to_json());
     }
 }
+
+/// The shared folder (not in the repository): `$WOVEN_SHARED`, else `../shared` beside the
+/// repository; `None` (test skipped with a message) when absent.
+fn shared_file(rel: &str) -> Option<std::path::PathBuf> {
+    let root = std::env::var_os("WOVEN_SHARED")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+    let p = root.join(rel);
+    if !p.is_file() {
+        eprintln!("skipped: no {} (set WOVEN_SHARED to the shared folder to run it)", p.display());
+        return None;
+    }
+    Some(p)
+}
+
+/// On a red/white 2/2 twill photo the column projection was flat (periodicity 0.07: every warp
+/// floats equally often, so the column means are all alike) and the photo was refused as "no
+/// periodic yarn structure"; the per-row autocorrelations find the grid (4×4, angle ≈ 2.3°).
+#[test]
+fn a_twill_photo_with_a_flat_projection_is_prepared() {
+    let Some(path) = shared_file("data/real/fabricnet/W039.jpg") else { return };
+    let img = Image::load(&path, 32).unwrap();
+    let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
+    assert!((p.angle_deg - 2.3).abs() < 1.0, "angle {}", p.angle_deg);
+    assert_eq!((p.n_e, p.n_a), (4, 4));
+}

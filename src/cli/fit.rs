@@ -7,14 +7,18 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
+use woven::fit::capture::{estimate_capture, CaptureEstimate};
 use woven::fit::demo::{demo_cloth, param_errors, synthetic_target};
 use woven::fit::eval::{eval, Ablation, EvalOptions, EvalPath};
+use woven::fit::output::{photo_scores, registered_render};
+use woven::fit::real::{eval_real, RealOptions};
 use woven::fit::renders::eval_renders;
 use woven::fit::report::quantile;
 use woven::fit::{check_input, fit, write_fit_outputs, FitMode, FitOptions, FitResult, MIN_INPUT_SIDE};
 use woven::image_io::Image;
 use woven::params::{ClothParams, APPEARANCE_RANGES};
 use woven::pattern::{WeavePattern, MAX_SIDE};
+use woven::prep::{diagnostic_overlay, prepare, PrepOptions};
 use woven::progress::Progress;
 use woven::scene::LightRig;
 
@@ -73,9 +77,11 @@ pub struct FitArgs {
     /// Seed of renders and proposals.
     #[arg(long, default_value_t = 1, allow_negative_numbers = true, value_parser = super::parse_seed)]
     pub seed: u64,
-    /// Light rig assumed for the photo: default, front, back, both, sides.
-    #[arg(long, default_value = "default")]
-    pub lights: LightRig,
+    /// Light rig assumed for the photo: default, front, back, both, sides. When absent, estimated
+    /// from the prepared photo (front-lit, back-lit or both: the holes at the yarn crossings
+    /// against the yarn centres; written to capture.json); without preparation, `default`.
+    #[arg(long)]
+    pub lights: Option<LightRig>,
     /// Pre-estimator network for the parameters without an analytic pre-estimate (e.g.
     /// models/pre_estimator.safetensors). Off by default: the shipped model made fits worse (pattern
     /// exact 0.50 vs 0.75 without it, docs/benchmarks.md).
@@ -110,7 +116,9 @@ impl FitArgs {
         if let Some(g) = &self.grid {
             o.input.grid = Some(parse_grid(g)?);
         }
-        o.render.lights = self.lights.clone();
+        if let Some(l) = &self.lights {
+            o.render.lights = l.clone();
+        }
         o.input.prep = !self.no_prep;
         o.pre.enabled = !self.no_pre_estimate;
         o.pre.model = self.model.clone();
@@ -184,6 +192,13 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     let input =
         Image::load(&args.image, MIN_INPUT_SIDE).with_context(|| format!("loading {}", args.image.display()))?;
     check_input(&input).with_context(|| format!("checking {}", args.image.display()))?;
+    let capture = if args.no_prep { None } else { prepare_photo(&input, &args.image, &args.out)? };
+    if let Some(c) = &capture {
+        if args.lights.is_none() {
+            opts.render.lights = c.capture.rig();
+            eprintln!("{}", c.describe());
+        }
+    }
     let staging = Staging::new(&args.out)?;
     let beat = Arc::new(Heartbeat::new(true, HEARTBEAT_S));
     opts.control.progress = beat.clone();
@@ -208,7 +223,7 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         input.width,
         input.height
     );
-    let (res, stopped) = beat.run(|| {
+    let (res, stopped, scores) = beat.run(|| {
         let res = fit(&input, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
         // The flag also counts when it was set during the finish, which cuts the polish short
         // without marking the result as stopped.
@@ -216,11 +231,30 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         warn_all(&res.warnings);
         beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
         warn_all(&write_fit_outputs(&res, staging.dir(), !args.no_noise, args.threads)?);
-        Ok((res, stopped))
+        if let Some(c) = &capture {
+            let record = serde_json::json!({
+                "estimate": c,
+                "used": if args.lights.is_some() { "--lights" } else { c.capture.name() },
+            });
+            woven::io::write_atomic(
+                &staging.dir().join("capture.json"),
+                serde_json::to_string_pretty(&record)?.as_bytes(),
+            )?;
+        }
+        beat.phase("scoring the fit against the whole photo (registered render)");
+        let scores =
+            registered_render(&res, (input.width, input.height), args.threads).map(|r| photo_scores(&r, &input));
+        Ok((res, stopped, scores))
     })?;
     let dest = if stopped { sibling(&args.out, "partial")? } else { args.out.clone() };
     staging.install(&dest)?;
     print_fit(&args.image, &dest, &res);
+    if let Some(s) = scores {
+        println!(
+            "fit.png against the whole photo: PSNR {:.2} dB, SSIM {:.3} (the crop the fit matched: PSNR {:.2} dB)",
+            s.psnr_db, s.ssim, res.psnr_db
+        );
+    }
     if stopped {
         let kept = if args.out.join("fit.json").is_file() {
             "keeps the earlier complete fit"
@@ -230,6 +264,36 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         eprintln!("stopped early: the best state so far is in {}; {} {kept}", dest.display(), args.out.display());
     }
     Ok(())
+}
+
+/// Prepare the photo before the fit (a second at most; the fit prepares it again): estimates its
+/// capture, and refuses in seconds a photo whose repeat cannot be found, writing what preparation
+/// saw (the rectified photo with the yarn grid it found) to `OUT.prep-grid.png` beside `--out` so
+/// the user can see why. `None` when the grid leaves nothing to measure the capture on.
+fn prepare_photo(input: &Image, image: &Path, out: &Path) -> Result<Option<CaptureEstimate>> {
+    let rgb = input.to_rgb32f();
+    match prepare(&rgb, &PrepOptions::default()) {
+        Ok(p) => Ok(estimate_capture(&p)),
+        Err(e) => {
+            let mut msg = format!("preparing {}: {e}", image.display());
+            if let Some(ov) = diagnostic_overlay(&rgb, &PrepOptions::default()) {
+                let path = PathBuf::from(format!("{}.prep-grid.png", out.display().to_string().trim_end_matches('/')));
+                match Image::from_rgb32f(&ov).save_png(&path) {
+                    Ok(()) => {
+                        msg += &format!(
+                            "\nwhat preparation found (yarn boundaries in red, the repeat in green): {}",
+                            path.display()
+                        )
+                    }
+                    Err(w) => {
+                        msg += &format!("\n(the preparation overlay could not be written to {}: {w})", path.display())
+                    }
+                }
+            }
+            msg += "\n(--no-prep fits an image that is exactly one repeat)";
+            bail!(msg)
+        }
+    }
 }
 
 /// Quiet time after which [`Heartbeat`] prints a line in `woven fit`.
@@ -580,6 +644,18 @@ pub struct EvalArgs {
     /// `datagen/mitsuba/README.md`); `--save` gets each fit and `sheet.png` (crop | fit | error).
     #[arg(long, value_name = "DIR")]
     pub renders: Option<PathBuf>,
+    /// Instead of synthetic targets, fit every real photo listed in DIR/labels.csv
+    /// (`path,weave_label`) as `woven fit PHOTO` would, and print per photo the weave class found,
+    /// PSNR and SSIM against the whole photo, the crop's PSNR and the time; `--save` gets each fit
+    /// and `sheet.png` (photo | fit | error).
+    #[arg(long, value_name = "DIR", conflicts_with = "renders")]
+    pub real: Option<PathBuf>,
+    /// With --real: fit only the first N photos of labels.csv.
+    #[arg(long, value_name = "N", requires = "real")]
+    pub limit: Option<usize>,
+    /// With --real: the light rig of every photo (default: estimated per photo).
+    #[arg(long, requires = "real")]
+    pub lights: Option<LightRig>,
 }
 
 impl EvalArgs {
@@ -606,6 +682,9 @@ impl EvalArgs {
 pub fn run_eval(args: &EvalArgs) -> Result<()> {
     if let Some(dir) = &args.renders {
         return run_eval_renders(dir, args);
+    }
+    if let Some(dir) = &args.real {
+        return run_eval_real(dir, args);
     }
     let rep = eval(&args.to_options(), &mut |i, truth, case| match &case.error {
         Some(e) => eprintln!("target {i}: fit failed: {e}"),
@@ -662,6 +741,53 @@ fn run_eval_renders(dir: &Path, args: &EvalArgs) -> Result<()> {
     })?;
     if let (Some(save), Some(sheet)) = (&args.save, rep.sheet()) {
         sheet.save_png(&save.join("sheet.png"))?;
+    }
+    let md = rep.markdown();
+    println!("\n{md}");
+    if let Some(p) = &args.markdown {
+        append_markdown(p, &md)?;
+    }
+    println!("{}", rep.summary_line());
+    Ok(())
+}
+
+/// `woven eval --real DIR`: fit each photo of `DIR/labels.csv` as a user would and score it (see
+/// [`woven::fit::real`]); the summary line is the last line printed.
+fn run_eval_real(dir: &Path, args: &EvalArgs) -> Result<()> {
+    let mut fit = FitOptions::default();
+    fit.joint.iterations = args.iterations;
+    fit.render.px_per_cell = args.px_per_cell;
+    fit.control.threads = args.threads;
+    fit.render.seed = args.seed;
+    if let Some(l) = &args.lights {
+        fit.render.lights = l.clone();
+    }
+    let opts = RealOptions { fit, estimate_lights: args.lights.is_none(), limit: args.limit, save: args.save.clone() };
+    let rep = eval_real(dir, &opts, &mut |c| match &c.error {
+        Some(e) => eprintln!("{}: label {} failed ({:.1} s): {e}", c.path, c.label, c.secs),
+        None => println!(
+            "{}: label {} class {} pattern {} capture {} photo_psnr={} ssim={} crop_psnr={} {:.1} s",
+            c.path,
+            c.label,
+            c.class.map_or("-".into(), |k| k.to_string()),
+            c.pattern,
+            c.capture.map_or("-", |k| k.capture.name()),
+            c.photo.map_or("-".into(), |p| format!("{:.1} dB", p.psnr_db)),
+            c.photo.map_or("-".into(), |p| format!("{:.3}", p.ssim)),
+            c.crop_psnr_db.map_or("-".into(), |p| format!("{p:.1} dB")),
+            c.secs
+        ),
+    })?;
+    if let Some(save) = &args.save {
+        std::fs::create_dir_all(save).with_context(|| format!("creating {}", save.display()))?;
+        if let Some(sheet) = rep.sheet() {
+            let path = save.join("sheet.png");
+            sheet.save_png(&path)?;
+            println!(
+                "contact sheet (photo | fit | error ×4; failed photos: photo | preparation overlay): {}",
+                path.display()
+            );
+        }
     }
     let md = rep.markdown();
     println!("\n{md}");

@@ -34,6 +34,7 @@
 
 pub mod anneal;
 mod candidates;
+pub mod capture;
 mod colours;
 pub mod demo;
 pub mod eval;
@@ -46,6 +47,7 @@ mod options;
 pub mod output;
 mod preestimate;
 mod proposal;
+pub mod real;
 mod refine;
 pub mod renders;
 pub mod report;

@@ -87,6 +87,113 @@ fn output_scene(
     s
 }
 
+/// Pixels per cell of the repeat rendered for [`registered_render`]: the photo's own cell size,
+/// within these bounds (finer than 8 px the yarns' plies vanish; beyond 48 px the render costs
+/// more than the photo's JPEG-soft detail is worth).
+const REGISTER_PX_PER_CELL: (f32, f32) = (8.0, 48.0);
+
+/// Samples per pixel of the repeat rendered for [`registered_render`].
+const REGISTER_SPP: u32 = 32;
+
+/// The fit rendered over the whole photo, registered to it: same size, and through the
+/// preparation's homography the same rotation, perspective and phase, so that a user can flip
+/// between the photo and the fit. `None` without preparation (the input is then one repeat,
+/// which `params.scene` already frames).
+///
+/// The fit's view is orthographic and the cloth periodic, so one repeat of the fit grid, rendered
+/// at about the photo's pixels per cell, holds every pixel: input pixel `(x, y)` maps to rectified
+/// pixel `(u, v) = H⁻¹(x, y)`, whose position in the repeat is its offset from the crop's corner
+/// as a fraction of the crop (`crop.w` × `crop.h`: warp and weft pitches may differ), wrapped;
+/// the repeat is sampled there bilinearly with wrap-around.
+pub fn registered_render(res: &FitResult, size: (u32, u32), threads: Option<usize>) -> Option<Image> {
+    let p = res.prep.as_ref()?;
+    let inv = crate::math::linalg::mat3_inv(&p.homography)?;
+    let (n_e, n_a) = (res.cloth.pattern.n_e(), res.cloth.pattern.n_a());
+    let (cw, ch) = (p.crop.w.max(1) as f64, p.crop.h.max(1) as f64);
+    let photo_c = (cw / n_a as f64).max(ch / n_e as f64) as f32;
+    let c = photo_c.clamp(REGISTER_PX_PER_CELL.0, REGISTER_PX_PER_CELL.1).round() as u32;
+    let scene = Scene {
+        width: n_a as u32 * c,
+        height: n_e as u32 * c,
+        spp: REGISTER_SPP,
+        seed: res.fit_scene.seed.wrapping_add(11),
+        ..res.fit_scene.clone()
+    };
+    let tile = render(&res.cloth, &scene, &RenderOptions { threads, ..Default::default() });
+    let (tw, th) = (tile.width as f64, tile.height as f64);
+    let (w, h) = size;
+    let mut data = Vec::with_capacity((w * h) as usize);
+    for y in 0..h {
+        for x in 0..w {
+            let (u, v) = crate::math::linalg::apply(&inv, x as f64, y as f64);
+            // Pixel centres: rectified pixel u covers [u, u + 1) in edge coordinates.
+            let a = (u + 0.5 - p.crop.x as f64) / cw * tw - 0.5;
+            let b = (v + 0.5 - p.crop.y as f64) / ch * th - 0.5;
+            data.push(sample_wrapped(&tile, a, b));
+        }
+    }
+    Some(Image::new(w, h, data))
+}
+
+/// Bilinear sample of `img` at pixel position `(x, y)` (pixel centres at integers), the image
+/// repeated periodically in both directions.
+fn sample_wrapped(img: &Image, x: f64, y: f64) -> [f32; 3] {
+    let (w, h) = (img.width as i64, img.height as i64);
+    if !(x.is_finite() && y.is_finite()) {
+        return img.get(0, 0);
+    }
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
+    let at = |i: i64, j: i64| img.get(i.rem_euclid(w) as u32, j.rem_euclid(h) as u32);
+    let (i, j) = (x0 as i64, y0 as i64);
+    let (p00, p10, p01, p11) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
+    [0, 1, 2].map(|k| (1.0 - fy) * ((1.0 - fx) * p00[k] + fx * p10[k]) + fy * ((1.0 - fx) * p01[k] + fx * p11[k]))
+}
+
+/// How well the registered fit matches the whole photo.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct PhotoScores {
+    /// PSNR (sRGB, peak 1) of the registered fit against the photo, dB.
+    pub psnr_db: f32,
+    /// Mean structural similarity (SSIM, Wang et al. 2004) of the sRGB luma, in [−1, 1].
+    pub ssim: f32,
+}
+
+/// [`PhotoScores`] of `fit` (same size as `photo`, e.g. [`registered_render`]) against `photo`.
+pub fn photo_scores(fit: &Image, photo: &Image) -> PhotoScores {
+    PhotoScores { psnr_db: fit.psnr_srgb(photo), ssim: ssim(fit, photo) }
+}
+
+/// Mean SSIM of two images of the same size (Wang, Bovik, Sheikh and Simoncelli 2004): on the
+/// sRGB-encoded luma (Rec. 709 weights), local statistics under a Gaussian window of σ = 1.5 px,
+/// `C1 = (0.01)²`, `C2 = (0.03)²` for a peak of 1 — the standard constants of the paper.
+pub fn ssim(a: &Image, b: &Image) -> f32 {
+    use crate::image_io::linear_to_srgb;
+    assert_eq!((a.width, a.height), (b.width, b.height), "ssim of images of different sizes");
+    let luma = |img: &Image| -> Vec<f32> {
+        img.data
+            .iter()
+            .map(|p| 0.2126 * linear_to_srgb(p[0]) + 0.7152 * linear_to_srgb(p[1]) + 0.0722 * linear_to_srgb(p[2]))
+            .collect()
+    };
+    let (x, y) = (luma(a), luma(b));
+    let (w, h) = (a.width as usize, a.height as usize);
+    let blur = |v: &[f32]| crate::prep::image_ops::blur_interleaved(v, w, h, 1, 1.5);
+    let prod = |p: &[f32], q: &[f32]| p.iter().zip(q).map(|(s, t)| s * t).collect::<Vec<f32>>();
+    let (mx, my) = (blur(&x), blur(&y));
+    let (sxx, syy, sxy) = (blur(&prod(&x, &x)), blur(&prod(&y, &y)), blur(&prod(&x, &y)));
+    let (c1, c2) = (0.01f64 * 0.01, 0.03f64 * 0.03);
+    let mut sum = 0.0f64;
+    for k in 0..w * h {
+        let (ux, uy) = (mx[k] as f64, my[k] as f64);
+        let vx = (sxx[k] as f64 - ux * ux).max(0.0);
+        let vy = (syy[k] as f64 - uy * uy).max(0.0);
+        let cxy = sxy[k] as f64 - ux * uy;
+        sum += ((2.0 * ux * uy + c1) * (2.0 * cxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+    }
+    (sum / (w * h).max(1) as f64) as f32
+}
+
 /// Nearest-neighbour upscale by an integer factor.
 fn upscale(img: &Image, f: u32) -> Image {
     let f = f.max(1);
@@ -306,7 +413,13 @@ pub fn write_outputs(
         log.push('\n');
     }
     crate::io::write_atomic(&dir.join("log.jsonl"), log.as_bytes())?;
-    let mut full = render(&res.params.cloth, &res.params.scene, &RenderOptions { threads, ..Default::default() });
+    // With preparation, fit.png is registered to the photo (its size, rotation, perspective and
+    // phase); without, the input is one repeat and `params.scene` frames it.
+    let size = (res.params.scene.width, res.params.scene.height);
+    let mut full = match registered_render(res, size, threads) {
+        Some(img) => img,
+        None => render(&res.params.cloth, &res.params.scene, &RenderOptions { threads, ..Default::default() }),
+    };
     if let Some(m) = noise {
         m.add_to(&mut full, res.params.scene.seed);
     }

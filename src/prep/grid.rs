@@ -107,17 +107,7 @@ pub fn autocorr(p: &[f64], max_lag: usize) -> Vec<f64> {
 pub fn pitch_from_profile(p: &[f64], min_pitch: f64) -> Option<(f64, f64)> {
     let n = p.len();
     let max_lag = n / 2;
-    let ac = autocorr(p, max_lag);
-    if ac.len() < 4 {
-        return None;
-    }
-    let lo = (min_pitch.ceil() as usize).max(2);
-    let peaks: Vec<usize> =
-        (lo..ac.len() - 1).filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1] && ac[d] > 0.0).collect();
-    let best = peaks.iter().map(|&d| ac[d]).fold(f64::MIN, f64::max);
-    let &d = peaks.iter().find(|&&d| ac[d] >= 0.75 * best)?;
-    let pitch = d as f64 + parabola_offset(ac[d - 1], ac[d], ac[d + 1]);
-    Some((pitch, ac[d]))
+    peak_pitch(&autocorr(p, max_lag), min_pitch)
 }
 
 /// Valleys (yarn boundaries) of a profile for a given approximate pitch.
@@ -297,8 +287,70 @@ pub fn analyze_axis(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<AxisGrid> 
     let mut p = profile(g, axis_x);
     detrend(&mut p);
     let (pitch_ac, strength) = pitch_from_profile(&p, min_pitch)?;
-    let (pitch0, (epitch, ephase, confidence)) = yarn_pitch(g, axis_x, &p, pitch_ac, min_pitch);
-    let vals = valleys(&p, pitch0);
+    Some(axis_grid(g, axis_x, &p, pitch_ac, strength, min_pitch))
+}
+
+/// Like [`analyze_axis`], but the first pitch and the periodicity strength come from the
+/// autocorrelation of every line *separately*, averaged ([`superposed_pitch`]), instead of from
+/// the autocorrelation of the integral projection. Used when the projection is flat: see
+/// [`superposed_pitch`] for why this happens on twills and satins.
+pub fn analyze_axis_superposed(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<AxisGrid> {
+    let (pitch_ac, strength) = superposed_pitch(g, axis_x, min_pitch)?;
+    let mut p = profile(g, axis_x);
+    detrend(&mut p);
+    Some(axis_grid(g, axis_x, &p, pitch_ac, strength, min_pitch))
+}
+
+/// First pitch and periodicity strength from the mean of the per-line autocorrelations: every
+/// row (`axis_x = true`) or column, mean removed, autocorrelated on its own, the correlations
+/// summed (the superposed DMF of [`super::period::dmf_rows`], `ρ(d) = 1 − D(d)/(2 var)`), then
+/// the same peak rule as [`pitch_from_profile`].
+///
+/// Why: the integral projection (column mean) of a twill or satin averages the floats of every
+/// row, and since each warp floats equally often the column means are all alike: the projection
+/// is flat (periodicity strength 0.07 on a red/white 2/2 twill photo whose rows are plainly
+/// periodic), and the photo was refused as "no periodic yarn structure". The diagonal only
+/// shifts each row's pattern, and an autocorrelation is blind to a shift, so the per-row
+/// correlations add up where the row means cancel. Noise keeps being refused: the rows of white
+/// or blurred noise have no autocorrelation peak of their own (white: ≈ 0 at every lag; blurred:
+/// a monotone decay without local maxima), and averaging many rows only shrinks what remains.
+pub fn superposed_pitch(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<(f64, f64)> {
+    let t;
+    let lines = if axis_x {
+        g
+    } else {
+        t = g.transposed();
+        &t
+    };
+    let n = lines.w;
+    let (dmf, var) = super::period::dmf_rows(lines, n / 2);
+    if var <= 1e-12 || dmf.len() < 4 {
+        return None;
+    }
+    let ac: Vec<f64> = dmf.iter().map(|d| 1.0 - d / (2.0 * var)).collect();
+    peak_pitch(&ac, min_pitch)
+}
+
+/// The pitch rule shared by [`pitch_from_profile`] and [`superposed_pitch`]: the smallest-lag
+/// local maximum of the autocorrelation `ac` (lag ≥ `min_pitch`) reaching 75% of the highest
+/// one, refined by a parabola; returns (pitch, correlation there).
+fn peak_pitch(ac: &[f64], min_pitch: f64) -> Option<(f64, f64)> {
+    if ac.len() < 4 {
+        return None;
+    }
+    let lo = (min_pitch.ceil() as usize).max(2);
+    let peaks: Vec<usize> =
+        (lo..ac.len() - 1).filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1] && ac[d] > 0.0).collect();
+    let best = peaks.iter().map(|&d| ac[d]).fold(f64::MIN, f64::max);
+    let &d = peaks.iter().find(|&&d| ac[d] >= 0.75 * best)?;
+    let pitch = d as f64 + parabola_offset(ac[d - 1], ac[d], ac[d + 1]);
+    Some((pitch, ac[d]))
+}
+
+/// Pitch, phase and valleys of one axis from a first pitch `pitch_ac` (see the module docs).
+fn axis_grid(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, strength: f64, min_pitch: f64) -> AxisGrid {
+    let (pitch0, (epitch, ephase, confidence)) = yarn_pitch(g, axis_x, p, pitch_ac, min_pitch);
+    let vals = valleys(p, pitch0);
     let (vpitch, vphase) = fit_lattice(&vals, pitch0);
     let (pitch, phase) = if confidence < MIN_EDGE_CONFIDENCE {
         (vpitch, vphase)
@@ -309,12 +361,12 @@ pub fn analyze_axis(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<AxisGrid> 
     } else {
         (epitch, ephase)
     };
-    Some(AxisGrid {
+    AxisGrid {
         pitch: pitch as f32,
         phase: phase as f32,
         strength: strength as f32,
         valleys: vals.iter().map(|&v| v as f32).collect(),
-    })
+    }
 }
 
 #[cfg(test)]
@@ -418,5 +470,39 @@ mod tests {
     fn edge_phase_has_no_confidence_without_edges() {
         let flat = Gray { w: 64, h: 64, data: vec![0.5; 64 * 64] };
         assert_eq!(edge_grid(&flat, true, 10.0).2, 0.0);
+    }
+
+    /// Rows of a twill-like image: the same periodic profile (pitch 16) shifted by a quarter period
+    /// per block of 16 rows, so the column means cancel. The integral projection sees nothing;
+    /// the per-row autocorrelations find the pitch. White noise gets no strength from either.
+    #[test]
+    fn superposed_pitch_sees_shifted_rows_and_not_noise() {
+        let (w, h) = (256usize, 128usize);
+        let mut g = Gray::new(w, h);
+        let mut s = 12345u64;
+        let mut rnd = || {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for y in 0..h {
+            let shift = (y / 16) as f64 * 4.0;
+            for x in 0..w {
+                let t = (x as f64 + shift) / 16.0 * std::f64::consts::TAU;
+                // A little noise, as in any photo: the cancelled projection is then noise, not
+                // rounding error that repeats with the rows.
+                g.data[y * w + x] = (0.5 + 0.3 * t.cos()) as f32 + 0.05 * (rnd() - 0.5);
+            }
+        }
+        let mut p = profile(&g, true);
+        detrend(&mut p);
+        let flat = pitch_from_profile(&p, 4.0).map_or(0.0, |(_, s)| s);
+        let (pitch, strength) = superposed_pitch(&g, true, 4.0).unwrap();
+        assert!(flat < 0.35, "integral projection strength {flat}");
+        assert!((pitch - 16.0).abs() < 0.3 && strength > 0.9, "pitch {pitch} strength {strength}");
+        for v in g.data.iter_mut() {
+            *v = rnd();
+        }
+        let noise = superposed_pitch(&g, true, 4.0).map_or(0.0, |(_, s)| s);
+        assert!(noise < 0.1, "noise strength {noise}");
     }
 }

@@ -99,6 +99,23 @@ pub enum PrepError {
         /// [`PrepOptions::min_single_repeat_structure`].
         min_grid: f32,
     },
+    /// No repeat was found along at least one axis and taking the whole image as one repeat gives
+    /// more yarns a side than a weave photographed whole has ([`PrepOptions::max_photo_yarns`]):
+    /// fitting such a grid takes minutes and recovers nothing.
+    #[error(
+        "no repeat of the weave found: {}; taking the whole image as one repeat would give {n_e}×{n_a} yarns (weft × warp), more than the {max} a side a weave repeats within; try a sharper, evenly lit close-up that shows at least 2 repeats each way (zoom out if each yarn spans more than ~60 px, in if less than ~8 px), straighten the cloth so the yarns run along the image edges, or fit a crop of exactly one repeat with `woven fit --no-prep --grid NExNA`",
+        match repeated { [false, false] => "the pattern does not repeat along either axis", [true, false] => "the pattern does not repeat along y (the wefts)", _ => "the pattern does not repeat along x (the warps)" }
+    )]
+    TooManyYarns {
+        /// Weft yarns (rows) the grid would hold.
+        n_e: usize,
+        /// Warp yarns (columns) the grid would hold.
+        n_a: usize,
+        /// [`PrepOptions::max_photo_yarns`].
+        max: usize,
+        /// Whether a repeat was found along x and y.
+        repeated: [bool; 2],
+    },
 }
 
 /// Options of [`prepare`].
@@ -125,6 +142,11 @@ pub struct PrepOptions {
     pub min_single_repeat_structure: f32,
     /// Smallest yarn pitch considered, pixels.
     pub min_pitch: f32,
+    /// Most yarns a side of the grid: more is refused with [`PrepError::TooManyYarns`]. The named
+    /// weaves repeat within 8 yarns (satin 8) and a figured repeat a user crops by hand rarely
+    /// exceeds 12; a larger grid means the repeat was not found and the whole photo became the
+    /// pattern.
+    pub max_photo_yarns: usize,
 }
 
 impl Default for PrepOptions {
@@ -138,6 +160,7 @@ impl Default for PrepOptions {
             min_period_corr: 0.7,
             min_single_repeat_structure: 0.8,
             min_pitch: 4.0,
+            max_photo_yarns: 12,
         }
     }
 }
@@ -278,8 +301,20 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     }
     let gb = blur_gray(&g, 1.0);
     let min_pitch = opts.min_pitch as f64;
-    let ax0 = analyze_axis(&gb, true, min_pitch).ok_or(PrepError::NoStructure)?;
-    let ay0 = analyze_axis(&gb, false, min_pitch).ok_or(PrepError::NoStructure)?;
+    // An axis whose integral projection is not periodic (twills, satins: see
+    // `grid::superposed_pitch`) gets its first pitch from the per-line autocorrelations instead.
+    let axis0 = |axis_x: bool| -> Option<AxisGrid> {
+        let a = analyze_axis(&gb, axis_x, min_pitch);
+        if a.as_ref().is_some_and(|a| a.strength >= opts.min_structure) {
+            return a;
+        }
+        match (a, grid::analyze_axis_superposed(&gb, axis_x, min_pitch)) {
+            (Some(a), Some(b)) => Some(if b.strength > a.strength { b } else { a }),
+            (a, b) => a.or(b),
+        }
+    };
+    let ax0 = axis0(true).ok_or(PrepError::NoStructure)?;
+    let ay0 = axis0(false).ok_or(PrepError::NoStructure)?;
     if ax0.strength < opts.min_structure || ay0.strength < opts.min_structure {
         return Err(PrepError::NoStructure);
     }
@@ -288,7 +323,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let blurred = blur_rgb(r, pitch0 / 16.0);
     // 4. Minimum pattern size (DMF).
     let (per_x, per_y) = detect_period(
-        &Gray::from_rgb(&blurred),
+        &flatten_for_period(&g, ax0.pitch.max(ay0.pitch) as f64, pitch0 as f64),
         // A repeat holds at least two yarns each way (n = 1 would mean the yarns never
         // interlace), so lags below 1.5 pitches are not candidates.
         1.5 * ax0.pitch as f64,
@@ -321,6 +356,14 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let ay = pick(analyze_axis(&gr, false, min_pitch), &ay0);
     let n_a = ((per_x.period / ax.pitch).round() as usize).max(1);
     let n_e = ((per_y.period / ay.pitch).round() as usize).max(1);
+    if n_e.max(n_a) > opts.max_photo_yarns {
+        return Err(PrepError::TooManyYarns {
+            n_e,
+            n_a,
+            max: opts.max_photo_yarns,
+            repeated: [per_x.repeated, per_y.repeated],
+        });
+    }
     // The crop spans one period: when a repeat was found its length is the DMF period (measured
     // over the whole image, finer than n pitches of the local grid); the start is a boundary.
     let span =
@@ -349,6 +392,64 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         n_a,
         crop: CropRect { x: cx, y: cy, w: cw, h: ch },
     })
+}
+
+/// The grey image the repeat is searched on: fibre texture smoothed out (Gaussian σ = pitch/6)
+/// and the illumination flattened (divided by a Gaussian blur at σ = 2 × the larger pitch,
+/// which keeps the yarn-scale pattern and removes vignetting and uneven light).
+///
+/// Why: the repeat's correlation `ρ` is limited on real photos by what is not the weave: hairs
+/// and fibre twist (different in every repeat) and slow brightness changes across the photo
+/// (a vignetted repeat is darker than its copy). Real repeats came out at ρ = 0.5–0.66 against
+/// the 0.7 that separates them from partial copies on clean renders; both effects lower ρ of
+/// true and partial copies alike, so they are removed rather than lowering the threshold.
+fn flatten_for_period(g: &Gray, max_pitch: f64, pitch: f64) -> Gray {
+    let fine = blur_gray(g, (pitch / 16.0) as f32);
+    let coarse = blur_gray(g, (2.0 * max_pitch) as f32);
+    let mut out = fine;
+    for (o, c) in out.data.iter_mut().zip(&coarse.data) {
+        *o /= c.max(1e-4);
+    }
+    out
+}
+
+/// A picture of what preparation found in `img`, for a user whose photo [`prepare`] refused: the
+/// grid overlay ([`Prepared::grid_overlay`]) when preparation succeeds without the grid-size
+/// limit, else the rectified image with the yarn boundaries of the first pitch estimate drawn in
+/// red along the axes where one was found, else the rectified image alone. `None` only for an
+/// image too small or non-finite to rectify.
+pub fn diagnostic_overlay(img: &Rgb32FImage, opts: &PrepOptions) -> Option<Rgb32FImage> {
+    check_input(img).ok()?;
+    let unlimited = PrepOptions { max_photo_yarns: usize::MAX, ..opts.clone() };
+    if let Ok(p) = prepare(img, &unlimited) {
+        return Some(p.grid_overlay());
+    }
+    let rect = if opts.rectify { rectify::rectify(img, opts.perspective).image } else { img.clone() };
+    let (w, h) = rect.dimensions();
+    if w < 2 || h < 2 {
+        return Some(rect);
+    }
+    let gb = blur_gray(&Gray::from_rgb(&rect), 1.0);
+    let mut out = rect;
+    let red = image::Rgb([1.0f32, 0.05, 0.05]);
+    for axis_x in [true, false] {
+        if let Some(a) = analyze_axis(&gb, axis_x, opts.min_pitch as f64) {
+            let extent = if axis_x { w } else { h };
+            let mut p = a.phase.rem_euclid(a.pitch.max(1.0));
+            while p < extent as f32 {
+                let k = (p.round() as u32).min(extent - 1);
+                for t in 0..if axis_x { h } else { w } {
+                    if axis_x {
+                        out.put_pixel(k, t, red);
+                    } else {
+                        out.put_pixel(t, k, red);
+                    }
+                }
+                p += a.pitch.max(1.0);
+            }
+        }
+    }
+    Some(out)
 }
 
 impl Prepared {
@@ -573,6 +674,35 @@ mod tests {
         let img = render_flat(&twill22(), 20.0, 80, 80);
         let pr = prepare(&img, &opts).expect("single twill repeat");
         assert_eq!((pr.n_e, pr.n_a), (4, 4), "{}", pr.to_json());
+    }
+
+    #[test]
+    fn a_whole_photo_of_too_many_yarns_is_refused_with_what_to_try() {
+        // A figured 16×14 repeat seen once: no repeat, and 16 yarns a side is more than a photo's
+        // weave repeats within, so it is refused instead of becoming a minutes-long fit.
+        use rand::prelude::*;
+        let mut rng = StdRng::seed_from_u64(5);
+        let custom: Vec<Vec<u8>> = (0..16).map(|_| (0..14).map(|_| rng.random_range(0..2u8)).collect()).collect();
+        let img = render_flat(&custom, 12.0, 14 * 12, 16 * 12);
+        let e = prepare(&img, &PrepOptions::default()).unwrap_err();
+        assert!(matches!(e, PrepError::TooManyYarns { n_e: 16, n_a: 14, max: 12, .. }), "{e:?}");
+        let msg = e.to_string();
+        assert!(
+            msg.starts_with("no repeat of the weave found") && msg.contains("16×14") && msg.contains("try "),
+            "{msg}"
+        );
+        // Without the limit the same image is one 16×14 repeat; the overlay draws that grid.
+        let big = PrepOptions { max_photo_yarns: 16, ..Default::default() };
+        let pr = prepare(&img, &big).unwrap();
+        assert_eq!((pr.n_e, pr.n_a), (16, 14));
+        let ov = diagnostic_overlay(&img, &PrepOptions::default()).unwrap();
+        assert_eq!(ov.dimensions(), pr.rectified.dimensions());
+        assert_eq!(ov.as_raw(), pr.grid_overlay().as_raw());
+        // A uniform image has no grid: the overlay is the rectified image, with no line drawn.
+        let uni = Rgb32FImage::from_pixel(64, 48, image::Rgb([0.4, 0.5, 0.6]));
+        let ov = diagnostic_overlay(&uni, &PrepOptions::default()).unwrap();
+        assert!(ov.pixels().all(|p| (p.0[1] - 0.5).abs() < 1e-3), "no red line on a uniform image");
+        assert!(diagnostic_overlay(&Rgb32FImage::new(8, 8), &PrepOptions::default()).is_none());
     }
 
     #[test]

@@ -1,0 +1,249 @@
+//! Capture estimated from the photo (issue 14): was the cloth lit from the front (the camera's
+//! side, so the gaps between the yarns show the dark background behind the cloth), from behind
+//! (the gaps glow with the light shining through them) or both? The answer picks the fit's light
+//! rig when the user gives no `--lights`, which stays an override.
+//!
+//! The evidence is read from the prepared photo (`prep::prepare`): on the rectified image, the
+//! luminance at the yarn-grid crossings (where four yarns meet and a hole opens between them)
+//! against the luminance at the cell centres (the middle of the yarn on top). Medians over every
+//! crossing and centre of the photo make it robust to hairy fibres, dirt and a few misplaced
+//! boundaries.
+//! - the brighter of the two lattices is far above the darker (ratio ≥ [`BACKLIT_RATIO`]) and
+//!   bright pixels are a minority of the picture (≤ [`BACKLIT_BRIGHT_SHARE`]): the bright points
+//!   are holes with a light behind them, so the cloth is lit from behind; if the yarns reach
+//!   [`FRONT_SHARE`] of the holes' brightness they are lit from the front as well: `both`;
+//! - otherwise: `front` (a dense cloth with no visible holes is lit from the camera's side,
+//!   since a back light alone would show little but a silhouette).
+//!
+//! Which lattice is the holes is told by the light rather than by the grid's phase, which can sit
+//! half a pitch off on a plain weave (boundaries found at the yarn centres).
+
+use crate::prep::image_ops::Gray;
+use crate::prep::Prepared;
+use crate::scene::LightRig;
+use serde::Serialize;
+
+/// Ratio of the brighter to the darker of the two lattice luminances (crossings, centres) above
+/// which bright holes may show a light behind the cloth. Measured on forward-model renders
+/// (`tests/real.rs`): front-lit plain, twill and satin give at most 1.6 (a lit yarn top against a
+/// shadowed hole), back-lit ≥ 30 and front + back ≥ 2.7.
+pub const BACKLIT_RATIO: f32 = 2.2;
+
+/// Largest share of the picture brighter than the middle of its range (between the 2nd and 98th
+/// percentiles of luminance) for the bright lattice points to be holes: the holes of a cloth are
+/// a minority of its area, the yarns the majority. A front-lit cloth of bright yarns (the white
+/// cotton with dark holes of issue 14) shows mostly bright pixels and is kept from passing for a
+/// back-lit one here, whatever its hole-to-yarn ratio; renders lit from behind give 6–15 %, but
+/// front-lit renders whose yarns shine only along their tops also give 17–28 %, so on those
+/// the ratio decides.
+pub const BACKLIT_BRIGHT_SHARE: f32 = 0.35;
+
+/// Share of the holes' brightness the yarns must reach, under a back light, to count as lit from
+/// the front too (`both`). A yarn lit only from behind passes a small fraction of the light
+/// through its body (Beer–Lambert in the yarn, its body-transmission albedo): 2–4 % of the holes
+/// on the renders, against 15–36 % with a front light added.
+pub const FRONT_SHARE: f32 = 0.1;
+
+/// Offset, in pitches, at which [`estimate_capture`] looks whether a bright lattice point is a
+/// small spot (a hole) or part of a yarn: past the edge of an open hole (the loose plain weave of
+/// the renders has holes 0.32 pitch wide) but inside the cell of a float.
+const SPOT_REACH: f32 = 0.35;
+
+/// Largest brightness share kept [`SPOT_REACH`] pitches from a bright lattice point for it to be a
+/// hole (`reach` of [`CaptureEstimate`]). Renders lit from behind give 0.02–0.38, front-lit
+/// renders 1.25–1.33 and the front-lit real photos (two-colour cloths whose white yarn tops are a
+/// bright minority, like back-lit holes, included) 0.75–2.2.
+pub const MAX_HOLE_REACH: f32 = 0.45;
+
+/// How the photo was lit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Capture {
+    /// From the camera's side: reflection only, holes dark.
+    Front,
+    /// From behind the cloth: transmission, holes bright.
+    Back,
+    /// Both: yarns lit from the front and holes bright.
+    Both,
+}
+
+impl Capture {
+    /// The rig name (`front`, `back`, `both`; see [`LightRig::NAMES`]).
+    pub fn name(self) -> &'static str {
+        match self {
+            Capture::Front => "front",
+            Capture::Back => "back",
+            Capture::Both => "both",
+        }
+    }
+
+    /// The light rig of this capture.
+    pub fn rig(self) -> LightRig {
+        LightRig::named(self.name()).expect("front, back and both are named rigs")
+    }
+}
+
+/// The capture found in a photo and the evidence for it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct CaptureEstimate {
+    /// The decision.
+    pub capture: Capture,
+    /// Median linear luminance at the yarn-grid crossings (the holes).
+    pub hole_luma: f32,
+    /// Median linear luminance at the cell centres (the yarn on top).
+    pub centre_luma: f32,
+    /// Number of crossings measured.
+    pub crossings: usize,
+    /// Share of the picture brighter than the middle of its luminance range.
+    pub bright_share: f32,
+    /// Luminance [`SPOT_REACH`] pitches from the bright lattice points, as a share of theirs
+    /// (median; small for holes, large for bright yarn tops).
+    pub reach: f32,
+}
+
+impl CaptureEstimate {
+    /// One line for the log: the decision and its evidence.
+    pub fn describe(&self) -> String {
+        format!(
+            "capture estimated from the photo: {} (luminance at the {} holes between the yarns {:.3} vs yarn centres {:.3}, {:.0} % of the picture bright, brightness reach {:.2}; --lights overrides)",
+            self.capture.name(),
+            self.crossings,
+            self.hole_luma,
+            self.centre_luma,
+            100.0 * self.bright_share,
+            self.reach
+        )
+    }
+}
+
+/// Median of `v` (`NaN` for none).
+fn median(mut v: Vec<f32>) -> f32 {
+    if v.is_empty() {
+        return f32::NAN;
+    }
+    v.sort_by(f32::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Positions `phase + k·pitch` inside `[margin, extent − margin)`.
+fn lattice(phase: f32, pitch: f32, extent: usize, margin: f32) -> Vec<f32> {
+    let mut v = Vec::new();
+    if !(pitch.is_finite() && pitch > 0.0 && phase.is_finite()) {
+        return v;
+    }
+    let mut p = phase.rem_euclid(pitch);
+    while p < extent as f32 - margin {
+        if p >= margin {
+            v.push(p);
+        }
+        p += pitch;
+    }
+    v
+}
+
+/// Mean of `g` over the square of half-side `r` around `(x, y)`.
+fn window_mean(g: &Gray, x: f32, y: f32, r: usize) -> f32 {
+    let (cx, cy) = (x.round() as i64, y.round() as i64);
+    let (mut s, mut n) = (0.0f64, 0usize);
+    for j in cy - r as i64..=cy + r as i64 {
+        for i in cx - r as i64..=cx + r as i64 {
+            if i >= 0 && j >= 0 && (i as usize) < g.w && (j as usize) < g.h {
+                s += g.at(i as usize, j as usize) as f64;
+                n += 1;
+            }
+        }
+    }
+    if n == 0 {
+        f32::NAN
+    } else {
+        (s / n as f64) as f32
+    }
+}
+
+/// Estimate the capture of a prepared photo (see the module docs). `None` when the grid leaves
+/// no crossing and centre to measure inside the image (fewer than 2 each way).
+pub fn estimate_capture(p: &Prepared) -> Option<CaptureEstimate> {
+    let g = Gray::from_rgb(&p.rectified);
+    let r = ((0.12 * p.pitch_x.min(p.pitch_y)).round() as usize).max(1);
+    let margin = r as f32 + 1.0;
+    let xs = lattice(p.phase_x, p.pitch_x, g.w, margin);
+    let ys = lattice(p.phase_y, p.pitch_y, g.h, margin);
+    let cxs = lattice(p.phase_x + 0.5 * p.pitch_x, p.pitch_x, g.w, margin);
+    let cys = lattice(p.phase_y + 0.5 * p.pitch_y, p.pitch_y, g.h, margin);
+    if xs.len() < 2 || ys.len() < 2 || cxs.len() < 2 || cys.len() < 2 {
+        return None;
+    }
+    let at = |xs: &[f32], ys: &[f32]| -> Vec<f32> {
+        ys.iter().flat_map(|&y| xs.iter().map(move |&x| (x, y))).map(|(x, y)| window_mean(&g, x, y, r)).collect()
+    };
+    let holes = at(&xs, &ys);
+    let crossings = holes.len();
+    let (a, b) = (median(holes), median(at(&cxs, &cys)));
+    if !(a.is_finite() && b.is_finite()) {
+        return None;
+    }
+    // The grid's phase may sit half a pitch off (boundaries found at yarn centres), swapping the
+    // crossings and the centres, so the hole lattice is told by what the light makes of it:
+    // bright holes under a back light are a minority of bright pixels far above the yarns.
+    let mut sorted = g.data.clone();
+    sorted.sort_by(f32::total_cmp);
+    let pct = |q: f32| sorted[((sorted.len() - 1) as f32 * q).round() as usize];
+    let mid = 0.5 * (pct(0.02) + pct(0.98));
+    let bright_share = sorted.iter().filter(|&&v| v > mid).count() as f32 / sorted.len() as f32;
+    let (hi, lo) = (a.max(b), a.min(b));
+    // How far the brightness of the bright lattice points reaches: a hole is a small spot closed
+    // on every side by yarns, a bright yarn top (a white weft on a dark warp, lit from the front)
+    // stays bright along its yarn. Luminance at ±SPOT_REACH pitches along x and along y, the
+    // better direction, as a share of the point's own.
+    let (bx, by) = if a >= b { (&xs, &ys) } else { (&cxs, &cys) };
+    let (dx, dy) = (SPOT_REACH * p.pitch_x, SPOT_REACH * p.pitch_y);
+    let reach: Vec<f32> = by
+        .iter()
+        .flat_map(|&y| bx.iter().map(move |&x| (x, y)))
+        .filter_map(|(x, y)| {
+            let c = window_mean(&g, x, y, r);
+            let along_x = 0.5 * (window_mean(&g, x - dx, y, r) + window_mean(&g, x + dx, y, r));
+            let along_y = 0.5 * (window_mean(&g, x, y - dy, r) + window_mean(&g, x, y + dy, r));
+            let m = along_x.max(along_y);
+            (c > 0.0 && m.is_finite()).then(|| m / c)
+        })
+        .collect();
+    let spot_reach = median(reach);
+    let backlit = hi >= BACKLIT_RATIO * lo.max(1e-6)
+        && bright_share <= BACKLIT_BRIGHT_SHARE
+        && spot_reach.is_finite()
+        && spot_reach <= MAX_HOLE_REACH;
+    let capture = match (backlit, lo >= FRONT_SHARE * hi) {
+        (true, true) => Capture::Both,
+        (true, false) => Capture::Back,
+        (false, _) => Capture::Front,
+    };
+    // Report the holes as the lattice the decision took them to be.
+    let (hole, centre) = if backlit { (hi, lo) } else { (lo, hi) };
+    Some(CaptureEstimate { capture, hole_luma: hole, centre_luma: centre, crossings, bright_share, reach: spot_reach })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lattices_and_windows() {
+        assert_eq!(lattice(12.0, 10.0, 40, 1.0), vec![2.0, 12.0, 22.0, 32.0]);
+        assert_eq!(lattice(-3.0, 10.0, 20, 1.0), vec![7.0, 17.0]);
+        assert!(lattice(0.0, f32::NAN, 20, 1.0).is_empty());
+        let mut g = Gray::new(5, 5);
+        g.data[2 * 5 + 2] = 9.0;
+        assert_eq!(window_mean(&g, 2.0, 2.0, 1), 1.0);
+        assert_eq!(window_mean(&g, 0.0, 0.0, 1), 0.0);
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert!(median(Vec::new()).is_nan());
+    }
+
+    #[test]
+    fn capture_names_are_rigs() {
+        for c in [Capture::Front, Capture::Back, Capture::Both] {
+            assert_eq!(c.rig(), LightRig::named(c.name()).unwrap());
+        }
+    }
+}

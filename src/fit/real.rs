@@ -1,0 +1,430 @@
+//! Evaluation on real photos (`woven eval --real DIR`, issue 14): fits every photo listed in
+//! `DIR/labels.csv` the way a user would (`woven fit PHOTO` with no flags: preparation, the capture
+//! estimated from the photo, the fit) and scores what a label can check and what a user sees:
+//! - the weave class of the fitted pattern ([`WeavePattern::weave_class`]: plain, twill, satin,
+//!   basket, other — equal up to shift, rotation, transposition and inversion) against the label;
+//! - PSNR and SSIM of the fit, registered to the photo ([`registered_render`]), against the whole
+//!   photo, beside the PSNR of the fit against the one-repeat crop it matched;
+//! - the time of each fit; a photo that fails counts as failed (and as a wrong class), with its
+//!   message, which says what to try.
+//!
+//! `labels.csv`: a header naming the columns `path` (relative to `DIR`) and `weave_label` (a
+//! [`WeaveClass`] name), other columns ignored; fields may be double-quoted (`""` inside quotes is
+//! a quote).
+
+use super::capture::{estimate_capture, CaptureEstimate};
+use super::output::{photo_scores, registered_render, write_fit_outputs, PhotoScores};
+use super::report::quantile;
+use super::{fit, FitOptions};
+use crate::image_io::Image;
+use crate::pattern::WeaveClass;
+use crate::prep::{diagnostic_overlay, prepare, PrepOptions};
+use anyhow::{bail, Context, Result};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Largest `labels.csv` read, bytes (a list of photos, not a data file).
+const MAX_LABELS_BYTES: u64 = 4 << 20;
+
+/// Height of a contact-sheet row, pixels.
+const SHEET_ROW_H: u32 = 160;
+
+/// One line of `labels.csv`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RealLabel {
+    /// Photo path relative to the folder.
+    pub path: String,
+    /// The labelled weave class.
+    pub class: WeaveClass,
+}
+
+/// Split one CSV line into fields (RFC 4180 quoting within the line).
+fn csv_fields(line: &str) -> Result<Vec<String>> {
+    let mut fields = Vec::new();
+    let mut cur = String::new();
+    let mut quoted = false;
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match (c, quoted) {
+            ('"', true) if chars.peek() == Some(&'"') => {
+                cur.push('"');
+                chars.next();
+            }
+            ('"', true) => quoted = false,
+            ('"', false) if cur.is_empty() => quoted = true,
+            (',', false) => fields.push(std::mem::take(&mut cur)),
+            (c, _) => cur.push(c),
+        }
+    }
+    if quoted {
+        bail!("unterminated quoted field");
+    }
+    fields.push(cur);
+    Ok(fields)
+}
+
+/// Parse the text of a `labels.csv` (see the module docs).
+pub fn parse_labels(text: &str) -> Result<Vec<RealLabel>> {
+    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+    let (_, header) = lines.next().context("labels.csv is empty: it needs a header `path,weave_label`")?;
+    let names: Vec<String> = csv_fields(header)?.iter().map(|s| s.trim().to_ascii_lowercase()).collect();
+    let col = |name: &str| {
+        names.iter().position(|n| n == name).with_context(|| {
+            format!("labels.csv: the header {header:?} has no `{name}` column (it needs `path,weave_label`)")
+        })
+    };
+    let (pc, lc) = (col("path")?, col("weave_label")?);
+    let mut out = Vec::new();
+    for (i, line) in lines {
+        let f = csv_fields(line).with_context(|| format!("labels.csv line {}", i + 1))?;
+        let get = |k: usize| {
+            f.get(k)
+                .map(|s| s.trim().to_string())
+                .filter(|s| !s.is_empty())
+                .with_context(|| format!("labels.csv line {}: {line:?} has no {} field", i + 1, names[k]))
+        };
+        let path = get(pc)?;
+        let class = get(lc)?.parse::<WeaveClass>().with_context(|| format!("labels.csv line {}", i + 1))?;
+        out.push(RealLabel { path, class });
+    }
+    if out.is_empty() {
+        bail!("labels.csv lists no photo");
+    }
+    Ok(out)
+}
+
+/// Read and parse `dir/labels.csv`.
+pub fn read_labels(dir: &Path) -> Result<Vec<RealLabel>> {
+    let path = dir.join("labels.csv");
+    let text = crate::io::read_text_capped(&path, MAX_LABELS_BYTES).with_context(|| {
+        format!("reading {} (a folder for --real needs labels.csv: path,weave_label)", path.display())
+    })?;
+    parse_labels(&text).with_context(|| format!("in {}", path.display()))
+}
+
+/// One photo of the folder.
+#[derive(Clone, Debug)]
+pub struct RealCase {
+    /// Photo path relative to the folder.
+    pub path: String,
+    /// Labelled class.
+    pub label: WeaveClass,
+    /// Class of the fitted pattern (`None` when the fit failed).
+    pub class: Option<WeaveClass>,
+    /// Fitted pattern (`-` when the fit failed).
+    pub pattern: String,
+    /// The capture the fit assumed, when estimated from the photo.
+    pub capture: Option<CaptureEstimate>,
+    /// The registered fit against the whole photo.
+    pub photo: Option<PhotoScores>,
+    /// PSNR of the fit against the crop it matched, dB.
+    pub crop_psnr_db: Option<f32>,
+    /// Seconds from loading the photo to the end of the fit (scoring and files excluded).
+    pub secs: f64,
+    /// Why the photo failed.
+    pub error: Option<String>,
+    /// Contact-sheet row: photo | registered fit | 4× error (or the preparation overlay when the
+    /// photo failed).
+    pub row: Option<Image>,
+}
+
+impl RealCase {
+    /// Whether the class found is the label's.
+    pub fn class_right(&self) -> bool {
+        self.class == Some(self.label)
+    }
+}
+
+/// Options of [`eval_real`].
+#[derive(Clone, Debug)]
+pub struct RealOptions {
+    /// Fit options for every photo (preparation on).
+    pub fit: FitOptions,
+    /// Estimate the capture of each photo (otherwise `fit.render.lights` is used).
+    pub estimate_lights: bool,
+    /// Fit only the first `limit` photos of the list.
+    pub limit: Option<usize>,
+    /// Write each fit's outputs to `save/<photo path without extension>/`.
+    pub save: Option<PathBuf>,
+}
+
+/// The cases of a folder.
+#[derive(Clone, Debug)]
+pub struct RealReport {
+    /// The cases, in the order of `labels.csv`.
+    pub cases: Vec<RealCase>,
+}
+
+/// Median of the values, `NaN` when there are none.
+fn median(v: impl Iterator<Item = f32>) -> f32 {
+    quantile(&v.collect::<Vec<f32>>(), 0.5)
+}
+
+impl RealReport {
+    /// The last line `woven eval --real` prints. Medians of PSNR and time are over the photos that
+    /// were fitted; the class accuracy is over all (a failed photo counts as wrong).
+    pub fn summary_line(&self) -> String {
+        let n = self.cases.len();
+        let ok: Vec<&RealCase> = self.cases.iter().filter(|c| c.error.is_none()).collect();
+        format!(
+            "real: n={n} class_acc={:.2} median_psnr_db={:.1} median_crop_psnr_db={:.1} failed={} median_fit_s={:.1}",
+            self.cases.iter().filter(|c| c.class_right()).count() as f32 / n.max(1) as f32,
+            median(ok.iter().filter_map(|c| c.photo.map(|s| s.psnr_db))),
+            median(ok.iter().filter_map(|c| c.crop_psnr_db)),
+            n - ok.len(),
+            median(ok.iter().map(|c| c.secs as f32)),
+        )
+    }
+
+    /// Markdown table of the cases plus the summary line.
+    pub fn markdown(&self) -> String {
+        let mut s = String::from(
+            "| photo | label | class found | pattern | capture | photo PSNR (dB) | photo SSIM | crop PSNR (dB) | time (s) |\n|---|---|---|---|---|---|---|---|---|\n",
+        );
+        for c in &self.cases {
+            let found = match (&c.error, c.class) {
+                (Some(e), _) => format!("failed: {}", e.replace('|', "/")),
+                (None, Some(k)) => format!("{k}{}", if c.class_right() { "" } else { " ✗" }),
+                (None, None) => "-".into(),
+            };
+            s += &format!(
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {:.1} |\n",
+                c.path,
+                c.label,
+                found,
+                c.pattern,
+                c.capture.map_or("-".into(), |k| k.capture.name().to_string()),
+                c.photo.map_or("-".into(), |p| format!("{:.1}", p.psnr_db)),
+                c.photo.map_or("-".into(), |p| format!("{:.3}", p.ssim)),
+                c.crop_psnr_db.map_or("-".into(), |p| format!("{p:.1}")),
+                c.secs
+            );
+        }
+        s += &format!("\n`{}`\n", self.summary_line());
+        s
+    }
+
+    /// The contact sheet: one row per photo (photo | fit | 4× error, or photo | preparation
+    /// overlay for a failed one), black gaps; `None` for no rows.
+    pub fn sheet(&self) -> Option<Image> {
+        let rows: Vec<&Image> = self.cases.iter().filter_map(|c| c.row.as_ref()).collect();
+        if rows.is_empty() {
+            return None;
+        }
+        // Rows differ in width (photos differ in aspect); `vstack` pads each to the widest.
+        Some(Image::vstack(&rows, 4))
+    }
+}
+
+/// `img` scaled to [`SHEET_ROW_H`] pixels high (box resampling).
+fn sheet_tile(img: &Image) -> Image {
+    let w = ((img.width as u64 * SHEET_ROW_H as u64) / img.height.max(1) as u64).clamp(1, 4096) as u32;
+    crate::math::resample::resample(img, w, SHEET_ROW_H)
+}
+
+/// `photo | fit | 4·|photo − fit|` (sRGB error), each [`SHEET_ROW_H`] pixels high.
+fn sheet_row(photo: &Image, fit: &Image) -> Image {
+    let err = super::output::error_map(photo, fit);
+    Image::hstack(&[&sheet_tile(photo), &sheet_tile(fit), &sheet_tile(&err)], 2)
+}
+
+/// Path of a photo's outputs under `save`: its path in the folder without the extension.
+fn save_dir(save: &Path, rel: &str) -> PathBuf {
+    save.join(Path::new(rel).with_extension(""))
+}
+
+/// Fit and score one photo.
+fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
+    let mut case = RealCase {
+        path: label.path.clone(),
+        label: label.class,
+        class: None,
+        pattern: "-".into(),
+        capture: None,
+        photo: None,
+        crop_psnr_db: None,
+        secs: 0.0,
+        error: None,
+        row: None,
+    };
+    let t = Instant::now();
+    let input = match Image::load(&dir.join(&label.path), super::MIN_INPUT_SIDE)
+        .map_err(anyhow::Error::from)
+        .and_then(|img| super::check_input(&img).map(|_| img))
+    {
+        Ok(img) => img,
+        Err(e) => {
+            case.error = Some(format!("{e:#}"));
+            return case;
+        }
+    };
+    let mut fopts = opts.fit.clone();
+    // Preparation runs here first (about a second at most) to estimate the capture before the fit,
+    // and so that a photo whose repeat cannot be found fails in seconds with the overlay to look at.
+    let rgb = input.to_rgb32f();
+    match prepare(&rgb, &PrepOptions::default()) {
+        Ok(p) => {
+            if opts.estimate_lights {
+                case.capture = estimate_capture(&p);
+                if let Some(k) = &case.capture {
+                    fopts.render.lights = k.capture.rig();
+                }
+            }
+        }
+        Err(e) => {
+            case.secs = t.elapsed().as_secs_f64();
+            case.error = Some(e.to_string());
+            if let Some(ov) = diagnostic_overlay(&rgb, &PrepOptions::default()) {
+                let ov = Image::from_rgb32f(&ov);
+                case.row = Some(Image::hstack(&[&sheet_tile(&input), &sheet_tile(&ov)], 2));
+                if let Some(s) = &opts.save {
+                    let d = save_dir(s, &label.path);
+                    if std::fs::create_dir_all(&d).is_ok() {
+                        // The overlay is a help to look at; failing to write it is not the photo's failure.
+                        let _ = ov.save_png(&d.join("prep_grid.png"));
+                    }
+                }
+            }
+            return case;
+        }
+    }
+    match fit(&input, &fopts) {
+        Ok(res) => {
+            case.secs = t.elapsed().as_secs_f64();
+            case.class = Some(res.params.cloth.pattern.weave_class());
+            case.pattern = res.params.cloth.pattern.to_string();
+            case.crop_psnr_db = Some(res.psnr_db);
+            if let Some(reg) = registered_render(&res, (input.width, input.height), fopts.control.threads) {
+                case.photo = Some(photo_scores(&reg, &input));
+                case.row = Some(sheet_row(&input, &reg));
+            }
+            if let Some(s) = &opts.save {
+                let d = save_dir(s, &label.path);
+                let written = write_fit_outputs(&res, &d, true, fopts.control.threads).and_then(|_| {
+                    let json = serde_json::to_string_pretty(&case.capture)?;
+                    crate::io::write_atomic(&d.join("capture.json"), json.as_bytes())?;
+                    Ok(())
+                });
+                if let Err(e) = written {
+                    case.error = Some(format!("fitted, but writing {} failed: {e:#}", d.display()));
+                }
+            }
+        }
+        Err(e) => {
+            case.secs = t.elapsed().as_secs_f64();
+            case.error = Some(format!("{e:#}"));
+        }
+    }
+    case
+}
+
+/// Fit every photo of `dir/labels.csv` (the first `opts.limit`) and score it; `on_case` is called
+/// as each photo is done. Errors only for a folder without a readable `labels.csv`; a photo that
+/// cannot be read or fitted is a failed case.
+pub fn eval_real(dir: &Path, opts: &RealOptions, on_case: &mut dyn FnMut(&RealCase)) -> Result<RealReport> {
+    let mut labels = read_labels(dir)?;
+    if let Some(n) = opts.limit {
+        if n == 0 {
+            bail!("--limit 0 fits no photo; give at least 1");
+        }
+        labels.truncate(n);
+    }
+    let mut cases = Vec::new();
+    for l in &labels {
+        let case = eval_photo(dir, l, opts);
+        on_case(&case);
+        cases.push(case);
+    }
+    Ok(RealReport { cases })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_parse_with_quotes_and_extra_columns() {
+        let text =
+            "path,weave_label,note\na/W1.jpg,twill,FabricNET label\n\n\"b,c.png\",Satin,\"4-end, \"\"crowfoot\"\"\"\n";
+        let l = parse_labels(text).unwrap();
+        assert_eq!(l.len(), 2);
+        assert_eq!(l[0], RealLabel { path: "a/W1.jpg".into(), class: WeaveClass::Twill });
+        assert_eq!(l[1].path, "b,c.png");
+        assert_eq!(l[1].class, WeaveClass::Satin);
+        assert_eq!(csv_fields("\"x \"\"y\"\"\",z").unwrap(), ["x \"y\"", "z"]);
+        // Columns may come in any order.
+        assert_eq!(parse_labels("weave_label,path\nplain,p.png").unwrap()[0].path, "p.png");
+    }
+
+    #[test]
+    fn bad_labels_are_refused_with_the_line() {
+        let e = |t: &str| format!("{:#}", parse_labels(t).unwrap_err());
+        assert!(e("").contains("empty"));
+        assert!(e("file,class\na,plain").contains("no `path` column"));
+        assert!(e("path,weave_label\n").contains("no photo"));
+        assert!(
+            e("path,weave_label\na.png,jacquard").contains("line 2")
+                && e("path,weave_label\na.png,jacquard").contains("jacquard")
+        );
+        assert!(e("path,weave_label\na.png").contains("line 2: \"a.png\" has no weave_label field"));
+        assert!(e("path,weave_label\n\"a.png,plain").contains("unterminated"));
+    }
+
+    #[test]
+    fn the_summary_counts_failures_as_wrong_and_medians_over_fits() {
+        let case = |label, class, psnr: Option<f32>, err: Option<&str>, secs| RealCase {
+            path: "p".into(),
+            label,
+            class,
+            pattern: "-".into(),
+            capture: None,
+            photo: psnr.map(|p| PhotoScores { psnr_db: p, ssim: 0.5 }),
+            crop_psnr_db: psnr.map(|p| p + 5.0),
+            secs,
+            error: err.map(str::to_string),
+            row: None,
+        };
+        use WeaveClass::*;
+        let rep = RealReport {
+            cases: vec![
+                case(Plain, Some(Plain), Some(20.0), None, 30.0),
+                case(Twill, Some(Satin), Some(24.0), None, 50.0),
+                case(Satin, None, None, Some("no repeat"), 1.0),
+                case(Twill, Some(Twill), Some(22.0), None, 40.0),
+            ],
+        };
+        assert_eq!(
+            rep.summary_line(),
+            "real: n=4 class_acc=0.50 median_psnr_db=22.0 median_crop_psnr_db=27.0 failed=1 median_fit_s=40.0"
+        );
+        let md = rep.markdown();
+        assert!(md.contains("failed: no repeat") && md.contains("satin ✗"), "{md}");
+        assert!(rep.sheet().is_none());
+        assert_eq!(save_dir(Path::new("out"), "fabricnet/W1.jpg"), Path::new("out/fabricnet/W1"));
+    }
+
+    #[test]
+    fn sheet_rows_of_different_widths_are_padded() {
+        let mut rep = RealReport { cases: Vec::new() };
+        for w in [40, 90] {
+            let photo = Image::filled(w, 30, [0.5; 3]);
+            let row = sheet_row(&photo, &photo);
+            assert_eq!(row.height, SHEET_ROW_H);
+            rep.cases.push(RealCase {
+                path: "p".into(),
+                label: WeaveClass::Plain,
+                class: None,
+                pattern: "-".into(),
+                capture: None,
+                photo: None,
+                crop_psnr_db: None,
+                secs: 0.0,
+                error: None,
+                row: Some(row),
+            });
+        }
+        let sheet = rep.sheet().unwrap();
+        assert_eq!(sheet.height, 2 * SHEET_ROW_H + 4);
+        assert_eq!(sheet.width, rep.cases[1].row.as_ref().unwrap().width);
+    }
+}
