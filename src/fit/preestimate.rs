@@ -10,7 +10,7 @@ use super::candidates::{best_variant, greedy_sweeps, rank_candidates};
 use super::colours::{estimate_colours, pattern_loss};
 use super::evaluator::{state_loss, Evaluator};
 use super::options::PreOptions;
-use super::target::{fit_scene, resample, tile};
+use super::target::{fit_scene, resample, shift_periodic, tile};
 use super::{refine, Stage};
 use crate::image_io::Image;
 use crate::params::{Appearance, ClothParams, NP_RANGE, RADIUS_RANGE};
@@ -99,6 +99,42 @@ pub(crate) fn pre_estimate(
     }
     let initial = starts.first().cloned().unwrap_or(cloth);
     Ok(PreEstimate { starts, warmed, initial })
+}
+
+/// Blur factors (of the preparation's σ) that [`fit_view`] tries: a photo adds its own lens and
+/// focus blur, and the rectification's resampling adds some, on top of the preparation's.
+const VIEW_BLURS: [f32; 3] = [1.0, 1.5, 2.0];
+
+/// Largest shift (target pixels, each axis) that [`fit_view`] tries around the edge-based phase.
+const VIEW_SHIFT: i32 = 2;
+
+/// A change of view must lower the loss by this fraction to be taken (the default view is the
+/// preparation's blur and the edge-based phase).
+const VIEW_MARGIN: f32 = 0.01;
+
+/// The view of the target that fits `cloth` (the pre-estimate, appearance converged) best: the
+/// cyclic shift within ±[`VIEW_SHIFT`] pixels and the blur among [`VIEW_BLURS`]·`blur0`, scored
+/// by the loss of one render of `cloth` (no re-trace per variant). The edge fold of
+/// `target::cell_phase` is right to about a pixel; the model, once its pattern and colours are
+/// estimated, places the cell boundaries more precisely, and tells how much blur the photo adds.
+/// Returns the shift and the blur σ (pixels).
+pub(crate) fn fit_view(ev: &Evaluator, cloth: &ClothParams, blur0: f32) -> ((i32, i32), f32) {
+    let img = ev.record(cloth).shade(&cloth.appearance);
+    let sharp = |t: Image| ev.sibling(ev.scene().clone(), t, ev.block()).with_blur(0.0);
+    let base = sharp(ev.target().clone()).mse_of(&ev.observe(&img));
+    let mut best = ((0, 0), blur0, base * (1.0 - VIEW_MARGIN));
+    for f in VIEW_BLURS {
+        let seen = ev.sibling(ev.scene().clone(), ev.target().clone(), ev.block()).with_blur(blur0 * f).observe(&img);
+        for dy in -VIEW_SHIFT..=VIEW_SHIFT {
+            for dx in -VIEW_SHIFT..=VIEW_SHIFT {
+                let l = sharp(shift_periodic(ev.target(), dx, dy)).mse_of(&seen);
+                if l < best.2 {
+                    best = ((dx, dy), blur0 * f, l);
+                }
+            }
+        }
+    }
+    (best.0, best.1)
 }
 
 /// Load the pre-estimator `model` and apply its prediction on `crop` to `cloth`; a prediction
