@@ -225,4 +225,39 @@ mod tests {
         assert!(t.prep.is_none() && t.crop.width == 40);
         assert!(t.image.data.iter().all(|p| (p[0] - 0.25).abs() < 1e-6));
     }
+
+    #[test]
+    fn a_crop_half_a_cell_off_the_yarn_grid_is_put_back_on_it() {
+        use crate::fit::demo::demo_cloth;
+        use crate::fit::target::{fit_scene, shift_periodic};
+        use crate::render::{render, RenderOptions};
+        let truth = demo_cloth();
+        let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
+        let ro = RenderOptions { threads: Some(1), ..Default::default() };
+        let rig = crate::scene::LightRig::default_rig();
+        // The crop at 13 px per cell starting 6 px (about half a cell) right and 7 px down of a
+        // yarn boundary, as a grid read on the yarn centres gives it; the fit runs at 10 px.
+        let sharp = render(&truth, &fit_scene(n_e, n_a, 13, 4, 2, &rig), &ro);
+        let crop = shift_periodic(&sharp, 6, 7);
+        let c = 10;
+        let image = resample(&crop, n_a as u32 * c, n_e as u32 * c);
+        let mut t = FitTarget { crop, prep: None, grid: (n_e, n_a), image, warnings: Vec::new(), blur_px: 0.0 };
+        let mut model = truth.clone();
+        model.pattern = crate::fit::default_twill(n_e, n_a);
+        let m = render(&model, &fit_scene(n_e, n_a, c, 4, 3, &rig), &ro);
+        let (dx, dy) = align_to_cells(&mut t, &m, c);
+        // −5 and +5 are the same sub-cell phase (a whole cell apart: a shift of the pattern).
+        let wrap = |v: i32| (v + 5).rem_euclid(10) - 5;
+        assert!(wrap(dx + 5).abs() <= 1 && wrap(dy + 5).abs() <= 1, "({dx}, {dy})");
+        // The target is now (within a pixel) the unshifted render at the fit's resolution, up to
+        // whole cells.
+        let want = resample(&sharp, n_a as u32 * c, n_e as u32 * c);
+        let best = |img: &Image| {
+            let cells = (0..n_e as i32).flat_map(|i| (0..n_a as i32).map(move |j| (j, i)));
+            cells.map(|(j, i)| shift_periodic(img, j * c as i32, i * c as i32).psnr_srgb(&want)).fold(0.0f32, f32::max)
+        };
+        let off = resample(&shift_periodic(&sharp, 6, 7), n_a as u32 * c, n_e as u32 * c);
+        assert!(best(&t.image) > best(&off) + 4.0, "{} vs {}", best(&t.image), best(&off));
+        assert_eq!((t.crop.width, t.crop.height), (13 * n_a as u32, 13 * n_e as u32));
+    }
 }

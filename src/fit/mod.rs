@@ -152,12 +152,16 @@ fn pipeline(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     } else {
         (0, 0)
     };
-    let ev0 = Evaluator::new(
-        target::fit_scene(n_e, n_a, r.px_per_cell, r.spp, r.seed, &r.lights),
-        target.image.clone(),
-        r.loss_block,
-    )
-    .with_blur(target.blur_px);
+    let mut scene = target::fit_scene(n_e, n_a, r.px_per_cell, r.spp, r.seed, &r.lights);
+    if target.prep.is_some() && opts.pre.enabled {
+        scene.exposure = preestimate::exposure_for(
+            &target.image,
+            &preestimate::default_cloth(pattern0.clone()),
+            &scene,
+            r.px_per_cell,
+        );
+    }
+    let ev0 = Evaluator::new(scene, target.image.clone(), r.loss_block).with_blur(target.blur_px);
     let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
 
