@@ -30,7 +30,7 @@ fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u3
         a
     };
     let (lo, hi) = (0.3f32, 0.9f32);
-    let (i0, i1) = (cache.shade(&with_body(lo)), cache.shade(&with_body(hi)));
+    let (i0, i1) = (ev.observe(&cache.shade(&with_body(lo))), ev.observe(&cache.shade(&with_body(hi))));
     let solve = |m: [f32; 3], r0: [f32; 3], r1: [f32; 3]| {
         let mut out = [0.5f32; 3];
         for k in 0..3 {
@@ -68,8 +68,8 @@ pub(crate) fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) 
     };
     let idx = target::top_pixels(ev.target(), 0.1);
     let m = target::mean_at(ev.target(), &idx);
-    let (s0, s1) =
-        (target::mean_at(&cache.shade(&with_spec(lo)), &idx), target::mean_at(&cache.shade(&with_spec(hi)), &idx));
+    let shade = |v: f32| ev.observe(&cache.shade(&with_spec(v)));
+    let (s0, s1) = (target::mean_at(&shade(lo), &idx), target::mean_at(&shade(hi), &idx));
     for k in 0..3 {
         let slope = (s1[k] - s0[k]) / (hi - lo);
         let v = if slope.abs() > 1e-6 { lo + (m[k] - s0[k]) / slope } else { 0.5 };

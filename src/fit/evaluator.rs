@@ -108,6 +108,51 @@ fn loss_values(img: &Image, b: u32) -> Vec<[f32; 3]> {
     block_filter(img, b).into_iter().map(|p| p.map(linear_to_srgb)).collect()
 }
 
+/// Blur σ (pixels) below which [`Evaluator::observe`] leaves a render as it is (a Gaussian that
+/// narrow puts over 99 % of its weight on the centre pixel).
+const MIN_BLUR: f32 = 0.2;
+
+/// Normalised taps of a Gaussian of `sigma` pixels, out to 3σ each side (centre in the middle).
+fn gaussian_taps(sigma: f32) -> Vec<f32> {
+    let r = (3.0 * sigma).ceil().max(1.0) as i32;
+    let t: Vec<f32> = (-r..=r).map(|d| (-(d * d) as f32 / (2.0 * sigma * sigma)).exp()).collect();
+    let s: f32 = t.iter().sum();
+    t.into_iter().map(|v| v / s).collect()
+}
+
+/// Separable convolution of a `w × h` image (row-major pixels of 3 channels) with the symmetric
+/// `taps`, wrapping around both edges (a fit render is one repeat of a periodic cloth). Generic so
+/// that the exact derivatives (dual numbers) are blurred with the values.
+fn blur_periodic<T>(px: &[[T; 3]], w: usize, h: usize, taps: &[f32]) -> Vec<[T; 3]>
+where
+    T: Copy + std::ops::Add<Output = T> + std::ops::Mul<f32, Output = T>,
+{
+    let r = (taps.len() / 2) as isize;
+    let pass = |src: &[[T; 3]], horizontal: bool| -> Vec<[T; 3]> {
+        (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as isize, (i / w) as isize);
+                let at = |d: isize| {
+                    let (xx, yy) = if horizontal {
+                        ((x + d).rem_euclid(w as isize), y)
+                    } else {
+                        (x, (y + d).rem_euclid(h as isize))
+                    };
+                    src[yy as usize * w + xx as usize]
+                };
+                let p0 = at(-r);
+                let mut acc = [p0[0] * taps[0], p0[1] * taps[0], p0[2] * taps[0]];
+                for (k, &t) in taps.iter().enumerate().skip(1) {
+                    let p = at(k as isize - r);
+                    (0..3).for_each(|c| acc[c] = acc[c] + p[c] * t);
+                }
+                acc
+            })
+            .collect()
+    };
+    pass(&pass(px, true), false)
+}
+
 /// Loss of an MSE at appearance `x`: the MSE plus the appearance barrier (paper eq. 5).
 pub(crate) fn total_loss(mse: f32, x: &[f32; N_APPEARANCE]) -> f32 {
     mse + anneal::appearance_barrier(x).0
@@ -134,6 +179,9 @@ pub(crate) struct Evaluator {
     target: Image,
     target_f: Vec<[f32; 3]>,
     b: u32,
+    /// Gaussian σ (pixels) of the blur the target went through and the renders are given before
+    /// they are compared (see [`Evaluator::with_blur`]); 0: none.
+    blur: f32,
     opts: RenderOptions,
     traces: TraceCounter,
 }
@@ -148,12 +196,35 @@ impl Evaluator {
     fn with_counter(scene: Scene, target: Image, b: u32, traces: TraceCounter) -> Self {
         let b = b.max(1);
         let target_f = loss_values(&target, b);
-        Evaluator { scene, target, target_f, b, opts: RenderOptions::default(), traces }
+        Evaluator { scene, target, target_f, b, blur: 0.0, opts: RenderOptions::default(), traces }
     }
 
-    /// Another view (scene, target, block size) whose re-traces count on this one's counter.
+    /// The same evaluator with the renders blurred by a Gaussian of `sigma` pixels (periodic:
+    /// the render is one repeat) before they are clamped, box-filtered and compared. A target
+    /// that went through preparation was blurred (σ = pitch/16, paper §4) before it was cropped;
+    /// a sharp render compared with it pays for every yarn edge and ply stripe the blur softened,
+    /// whichever pattern it has, and that misfit drowns the pattern's own signal. The blur is
+    /// linear, so it applies to the exact derivatives too.
+    pub(crate) fn with_blur(mut self, sigma: f32) -> Self {
+        self.blur = sigma.max(0.0);
+        self
+    }
+
+    /// Another view (scene, target, block size) whose re-traces count on this one's counter;
+    /// its blur is this one's scaled to the new scene's pixels.
     pub(crate) fn sibling(&self, scene: Scene, target: Image, b: u32) -> Self {
-        Self::with_counter(scene, target, b, self.traces.clone())
+        let scale = scene.width as f32 / self.scene.width.max(1) as f32;
+        let blur = self.blur * scale;
+        Self::with_counter(scene, target, b, self.traces.clone()).with_blur(blur)
+    }
+
+    /// A render as the target sees it: blurred as the target was (see [`Evaluator::with_blur`]).
+    pub(crate) fn observe(&self, img: &Image) -> Image {
+        if self.blur < MIN_BLUR {
+            return img.clone();
+        }
+        let k = gaussian_taps(self.blur);
+        Image::new(img.width, img.height, blur_periodic(&img.data, img.width as usize, img.height as usize, &k))
     }
 
     /// The same view and target rendered at `spp` samples per pixel with `seed` (its re-traces
@@ -196,7 +267,7 @@ impl Evaluator {
 
     /// Loss (MSE of the loss values) of a rendered image.
     pub(crate) fn mse_of(&self, img: &Image) -> f32 {
-        let f = loss_values(img, self.b);
+        let f = loss_values(&self.observe(img), self.b);
         let n = (f.len() * 3).max(1) as f32;
         f.iter().zip(&self.target_f).map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()).sum::<f32>() / n
     }
@@ -211,7 +282,11 @@ impl Evaluator {
     /// block values (chain rule through [`linear_to_srgb_slope`]).
     fn derivatives(&self, cache: &PathCache, a: &Appearance, hessian: bool) -> (f32, [f32; N_APPEARANCE], Vec<f64>) {
         let (w, h) = cache.size();
-        let acc = block_jacobian(&cache.shade_with_derivatives(a), w, h, self.b);
+        let mut px = cache.shade_with_derivatives(a);
+        if self.blur >= MIN_BLUR {
+            px = blur_periodic(&px, w as usize, h as usize, &gaussian_taps(self.blur));
+        }
+        let acc = block_jacobian(&px, w, h, self.b);
         let n = (acc.len() * 3).max(1) as f32;
         let mut loss = 0.0f32;
         let mut g = [0.0f32; N_APPEARANCE];
@@ -319,5 +394,48 @@ mod tests {
         assert_eq!(alone.traces().count(), 1);
         assert_eq!((fine.scene().spp, fine.scene().seed, fine.block()), (2, 9, 2));
         assert_eq!(other.target_values().len(), 4);
+    }
+
+    #[test]
+    fn a_blurred_evaluator_blurs_renders_and_their_derivatives_alike() {
+        let cloth = crate::fit::demo::demo_cloth();
+        let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+        let scene = fit_scene(n_e, n_a, 8, 2, 1, &LightRig::default_rig());
+        let sharp = Evaluator::new(scene.clone(), Image::filled(8 * n_a as u32, 8 * n_e as u32, [0.3; 3]), 2);
+        let cache = sharp.record(&cloth);
+        let img = cache.shade(&cloth.appearance);
+        // The target: the render blurred by σ = 1 px. The blurred evaluator matches it far better.
+        let blurred = sharp.observe(&img);
+        assert_eq!(blurred.data, img.data, "no blur without with_blur");
+        let ev = Evaluator::new(scene.clone(), img.clone(), 2).with_blur(1.0);
+        let target = ev.observe(&img);
+        assert!(target.rmse(&img) > 0.01, "the blur changes the render");
+        let mean = |i: &Image| i.mean().iter().sum::<f32>();
+        assert!((mean(&target) - mean(&img)).abs() < 1e-3, "a periodic blur keeps the mean");
+        let sharp_ev = Evaluator::new(scene.clone(), target.clone(), 2);
+        let blur_ev = Evaluator::new(scene.clone(), target, 2).with_blur(1.0);
+        assert!(blur_ev.mse_of(&img) < 1e-10 && sharp_ev.mse_of(&img) > 1e-4);
+        // The loss with derivatives is the same function as the image loss, blur included, and
+        // its gradient agrees with a difference quotient in the blurred view.
+        let (l, g) = blur_ev.loss_grad(&cache, &cloth.appearance);
+        assert!((l - blur_ev.mse_of(&img)).abs() < 1e-6, "{l}");
+        let mut a = cloth.appearance.clone();
+        let h = 0.02;
+        a.r_b_e = a.r_b_e.map(|v| v + h);
+        let mut b = cloth.appearance.clone();
+        b.r_b_e = b.r_b_e.map(|v| v - h);
+        // Move the target away so that the loss has a slope.
+        let off =
+            Evaluator::new(scene.clone(), Image::filled(8 * n_a as u32, 8 * n_e as u32, [0.3; 3]), 2).with_blur(1.0);
+        let (_, g_off) = off.loss_grad(&cache, &cloth.appearance);
+        let fd = (off.mse_of(&cache.shade(&a)) - off.mse_of(&cache.shade(&b))) / (2.0 * h);
+        let i = crate::params::param::R_B_E;
+        let an = g_off[i] + g_off[i + 1] + g_off[i + 2];
+        assert!((an - fd).abs() <= 0.05 * fd.abs().max(1e-4), "analytic {an} vs difference {fd}");
+        assert!(g.iter().all(|v| v.is_finite()));
+        // A sibling at twice the resolution blurs twice as many pixels.
+        let fine = fit_scene(n_e, n_a, 16, 2, 1, &LightRig::default_rig());
+        let sib = blur_ev.sibling(fine, Image::filled(16 * n_a as u32, 16 * n_e as u32, [0.3; 3]), 2);
+        assert!((sib.blur - 2.0).abs() < 1e-6);
     }
 }

@@ -3,7 +3,7 @@
 //! the fit's pixels per cell.
 
 use super::options::InputOptions;
-use super::target::{detect_grid, resample};
+use super::target::{cell_phase, detect_grid, resample, shift_periodic};
 use crate::image_io::Image;
 use crate::pattern::MAX_SIDE;
 use anyhow::{bail, Context, Result};
@@ -46,6 +46,10 @@ pub fn check_input(img: &Image) -> Result<()> {
     Ok(())
 }
 
+/// Preparation's blur σ as a fraction of the yarn pitch (the paper's σ = pitch/16; `prep::prepare`
+/// step 3).
+pub(crate) const PREP_BLUR_PER_PITCH: f32 = 1.0 / 16.0;
+
 /// The target of a fit.
 pub(crate) struct FitTarget {
     /// One repeat of the input (the minimum-pattern crop after preparation).
@@ -58,6 +62,10 @@ pub(crate) struct FitTarget {
     pub image: Image,
     /// Warnings (a fixed pattern that disagrees with the grid prep found).
     pub warnings: Vec<String>,
+    /// Gaussian σ, in pixels of `image`, of the blur the target went through before it was
+    /// cropped: preparation's σ = pitch/16 (paper §4, docs/design.md §3 step 4), which is
+    /// `c/16` once a pitch is resampled to `c` pixels; 0 without preparation.
+    pub blur_px: f32,
 }
 
 /// The target of `input` at `c` pixels per cell (see the module docs).
@@ -75,7 +83,47 @@ pub(crate) fn prepare_target(input: &Image, opts: &InputOptions, c: u32) -> Resu
     let mut warnings = Vec::new();
     let grid = settle_grid(&crop, found, opts, &mut warnings)?;
     let image = resample(&crop, grid.1 as u32 * c, grid.0 as u32 * c);
-    Ok(FitTarget { crop, prep, grid, image, warnings })
+    let blur_px = if prep.is_some() { c as f32 * PREP_BLUR_PER_PITCH } else { 0.0 };
+    Ok(FitTarget { crop, prep, grid, image, warnings, blur_px })
+}
+
+/// Put the target's cell boundaries on the model's: estimate the crop's sub-cell phase against
+/// `model` (a render of any cloth on the target's grid at `c` pixels per cell, see
+/// [`cell_phase`]) and shift the crop cyclically by it (the crop is one repeat of a periodic
+/// image, so it may start anywhere), then resample the target again. Preparation places its crop
+/// on the yarn boundaries it finds, but a grid read from the brightness profiles can land on the
+/// yarn centres instead (gaps brighter than the yarns, yarn families of very different
+/// brightness), and a crop half a cell off makes every pattern candidate wrong. The crop rectangle
+/// of the preparation moves with it, so that the output frames the input as before. Returns the
+/// shift in target pixels (fit resolution).
+pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, i32) {
+    let ((dx, dy), _) = cell_phase(&t.image, model, c);
+    shift_target(t, (dx, dy), c);
+    (dx, dy)
+}
+
+/// Shift the target cyclically by `(dx, dy)` pixels at `c` pixels per cell (see
+/// [`shift_periodic`]): the crop by the same amount at its own resolution, the target resampled
+/// from it again, and the preparation's crop rectangle moved along.
+pub(crate) fn shift_target(t: &mut FitTarget, (dx, dy): (i32, i32), c: u32) {
+    if (dx, dy) == (0, 0) {
+        return;
+    }
+    let (n_e, n_a) = t.grid;
+    // The same shift at the crop's own resolution (it is resampled to the fit's afterwards).
+    let sx = (dx as f32 * t.crop.width as f32 / (n_a as u32 * c) as f32).round() as i32;
+    let sy = (dy as f32 * t.crop.height as f32 / (n_e as u32 * c) as f32).round() as i32;
+    t.crop = shift_periodic(&t.crop, sx, sy);
+    t.image = resample(&t.crop, n_a as u32 * c, n_e as u32 * c);
+    if let Some(p) = t.prep.as_mut() {
+        // A crop moved before the image's edge starts one repeat later instead (it is periodic).
+        let moved = |at: u32, by: i32, len: u32| {
+            let v = at as i64 + by as i64;
+            (if v < 0 { v + len as i64 } else { v }) as u32
+        };
+        p.crop.x = moved(p.crop.x, sx, p.crop.w);
+        p.crop.y = moved(p.crop.y, sy, p.crop.h);
+    }
 }
 
 /// The yarn grid: a fixed pattern's (with a warning where prep found another), else the one
@@ -176,5 +224,40 @@ mod tests {
         assert_eq!((t.grid, t.image.width, t.image.height), ((2, 4), 24, 12));
         assert!(t.prep.is_none() && t.crop.width == 40);
         assert!(t.image.data.iter().all(|p| (p[0] - 0.25).abs() < 1e-6));
+    }
+
+    #[test]
+    fn a_crop_half_a_cell_off_the_yarn_grid_is_put_back_on_it() {
+        use crate::fit::demo::demo_cloth;
+        use crate::fit::target::{fit_scene, shift_periodic};
+        use crate::render::{render, RenderOptions};
+        let truth = demo_cloth();
+        let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
+        let ro = RenderOptions { threads: Some(1), ..Default::default() };
+        let rig = crate::scene::LightRig::default_rig();
+        // The crop at 13 px per cell starting 6 px (about half a cell) right and 7 px down of a
+        // yarn boundary, as a grid read on the yarn centres gives it; the fit runs at 10 px.
+        let sharp = render(&truth, &fit_scene(n_e, n_a, 13, 4, 2, &rig), &ro);
+        let crop = shift_periodic(&sharp, 6, 7);
+        let c = 10;
+        let image = resample(&crop, n_a as u32 * c, n_e as u32 * c);
+        let mut t = FitTarget { crop, prep: None, grid: (n_e, n_a), image, warnings: Vec::new(), blur_px: 0.0 };
+        let mut model = truth.clone();
+        model.pattern = crate::fit::default_twill(n_e, n_a);
+        let m = render(&model, &fit_scene(n_e, n_a, c, 4, 3, &rig), &ro);
+        let (dx, dy) = align_to_cells(&mut t, &m, c);
+        // −5 and +5 are the same sub-cell phase (a whole cell apart: a shift of the pattern).
+        let wrap = |v: i32| (v + 5).rem_euclid(10) - 5;
+        assert!(wrap(dx + 5).abs() <= 1 && wrap(dy + 5).abs() <= 1, "({dx}, {dy})");
+        // The target is now (within a pixel) the unshifted render at the fit's resolution, up to
+        // whole cells.
+        let want = resample(&sharp, n_a as u32 * c, n_e as u32 * c);
+        let best = |img: &Image| {
+            let cells = (0..n_e as i32).flat_map(|i| (0..n_a as i32).map(move |j| (j, i)));
+            cells.map(|(j, i)| shift_periodic(img, j * c as i32, i * c as i32).psnr_srgb(&want)).fold(0.0f32, f32::max)
+        };
+        let off = resample(&shift_periodic(&sharp, 6, 7), n_a as u32 * c, n_e as u32 * c);
+        assert!(best(&t.image) > best(&off) + 4.0, "{} vs {}", best(&t.image), best(&off));
+        assert_eq!((t.crop.width, t.crop.height), (13 * n_a as u32, 13 * n_e as u32));
     }
 }

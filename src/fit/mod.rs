@@ -108,6 +108,12 @@ pub struct FitResult {
     pub timings: [f64; 4],
     /// Number of re-traces (geometry records and renders).
     pub retraces: usize,
+    /// Cyclic shift `(dx, dy)` in fit pixels that put the target's cell boundaries on the model's
+    /// (`input::align_to_cells`); the target and the preparation's crop are already shifted.
+    pub phase_shift: (i32, i32),
+    /// Gaussian σ (fit pixels) of the blur applied to the renders before they were compared with
+    /// the target: preparation's, or more where the photo adds its own (0 without preparation).
+    pub blur_px: f32,
 }
 
 /// What the stages after the input share: the fit's evaluator, the render settings, the run
@@ -136,20 +142,50 @@ pub fn fit(input: &Image, opts: &FitOptions) -> Result<FitResult> {
 fn pipeline(input: &Image, opts: &FitOptions) -> Result<FitResult> {
     let clock = Instant::now();
     let r = &opts.render;
-    let target = input::prepare_target(input, &opts.input, r.px_per_cell)?;
+    let mut target = input::prepare_target(input, &opts.input, r.px_per_cell)?;
     let (n_e, n_a) = target.grid;
-    let ev = Evaluator::new(
-        target::fit_scene(n_e, n_a, r.px_per_cell, r.spp, r.seed, &r.lights),
-        target.image,
-        r.loss_block,
-    );
-    let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
+    let pattern0 = opts.input.pattern.as_ref().map_or_else(|| default_twill(n_e, n_a), candidates::unreduced);
+    // A prepared crop is put on the model's cell grid (`input::align_to_cells`); a one-repeat
+    // input given without preparation is taken as framed.
+    let phase_shift = if target.prep.is_some() {
+        let scene = target::fit_scene(n_e, n_a, r.px_per_cell, r.spp.max(8), r.seed, &r.lights);
+        let model = crate::render::render(&preestimate::default_cloth(pattern0.clone()), &scene, &Default::default());
+        input::align_to_cells(&mut target, &model, r.px_per_cell)
+    } else {
+        (0, 0)
+    };
+    let mut scene = target::fit_scene(n_e, n_a, r.px_per_cell, r.spp, r.seed, &r.lights);
+    if target.prep.is_some() && opts.pre.enabled {
+        scene.exposure = preestimate::exposure_for(
+            &target.image,
+            &preestimate::default_cloth(pattern0.clone()),
+            &scene,
+            r.px_per_cell,
+        );
+    }
+    let ev0 = Evaluator::new(scene, target.image.clone(), r.loss_block).with_blur(target.blur_px);
+    let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
 
-    let mut warnings = target.warnings;
-    let pattern0 = opts.input.pattern.as_ref().map_or_else(|| default_twill(n_e, n_a), candidates::unreduced);
+    let mut warnings = std::mem::take(&mut target.warnings);
     let pre =
-        preestimate::pre_estimate(&st, &opts.pre, &target.crop, preestimate::default_cloth(pattern0), &mut warnings)?;
+        preestimate::pre_estimate(&st0, &opts.pre, &target.crop, preestimate::default_cloth(pattern0), &mut warnings)?;
+    // With preparation, the pre-estimate settles the view: the last pixel of the phase and the
+    // photo's own blur (`preestimate::fit_view`).
+    let (ev, view) = if target.prep.is_some() && opts.pre.enabled {
+        let (shift, blur) = preestimate::fit_view(&ev0, &pre.initial, target.blur_px);
+        if shift != (0, 0) || blur != target.blur_px {
+            input::shift_target(&mut target, shift, r.px_per_cell);
+            let ev = ev0.sibling(ev0.scene().clone(), target.image.clone(), r.loss_block).with_blur(blur);
+            (ev, (shift, blur))
+        } else {
+            (ev0, (shift, blur))
+        }
+    } else {
+        (ev0, ((0, 0), target.blur_px))
+    };
+    let phase_shift = (phase_shift.0 + view.0 .0, phase_shift.1 + view.0 .1);
+    let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_pre = clock.elapsed().as_secs_f64() - t_prep;
 
     let joint = joint::run_all(&st, &opts.joint, &pre.starts);
@@ -184,6 +220,8 @@ fn pipeline(input: &Image, opts: &FitOptions) -> Result<FitResult> {
         warnings,
         timings: [t_prep, t_pre, t_opt, clock.elapsed().as_secs_f64()],
         retraces: ev.traces().count(),
+        phase_shift,
+        blur_px: view.1,
     })
 }
 

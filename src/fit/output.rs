@@ -41,7 +41,8 @@ pub(crate) fn final_state(
     let final_scene =
         Scene { spp: settings.final_spp.max(1), seed: settings.seed.wrapping_add(7), ..ev.scene().clone() };
     let render = Prepared::new(&cloth, &final_scene, &RenderOptions::default()).render(&cloth.appearance);
-    let psnr_db = render.psnr_srgb(ev.target());
+    // Against the target as the fit saw it: the render blurred as preparation blurred the target.
+    let psnr_db = ev.observe(&render).psnr_srgb(ev.target());
     // A body texture is laid over the fit grid, so the pattern keeps that grid.
     let reduced = if cloth.body_texture.is_some() { cloth.pattern.clone() } else { cloth.pattern.reduced() };
     let mut out_cloth = cloth.clone();

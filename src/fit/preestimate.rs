@@ -10,11 +10,12 @@ use super::candidates::{best_variant, greedy_sweeps, rank_candidates};
 use super::colours::{estimate_colours, pattern_loss};
 use super::evaluator::{state_loss, Evaluator};
 use super::options::PreOptions;
-use super::target::{fit_scene, resample, tile};
+use super::target::{cell_means, fit_scene, resample, shift_periodic, tile};
 use super::{refine, Stage};
 use crate::image_io::Image;
 use crate::params::{Appearance, ClothParams, NP_RANGE, RADIUS_RANGE};
 use crate::pattern::WeavePattern;
+use crate::scene::Scene;
 use anyhow::{Context, Result};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -65,7 +66,10 @@ pub(crate) fn pre_estimate(
     let (stop, c) = (&*st.control.stop, st.render.px_per_cell);
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
     let cp = if opts.px_per_cell == 0 { c } else { opts.px_per_cell };
-    let pre_scene = fit_scene(n_e, n_a, cp, opts.spp, st.render.seed, &st.render.lights);
+    let pre_scene = Scene {
+        exposure: st.ev.scene().exposure,
+        ..fit_scene(n_e, n_a, cp, opts.spp, st.render.seed, &st.render.lights)
+    };
     let pre_ev = st.ev.sibling(pre_scene, resample(crop, n_a as u32 * cp, n_e as u32 * cp), st.render.loss_block);
     let shortlist = if st.cells {
         // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
@@ -99,6 +103,72 @@ pub(crate) fn pre_estimate(
     }
     let initial = starts.first().cloned().unwrap_or(cloth);
     Ok(PreEstimate { starts, warmed, initial })
+}
+
+/// Fraction of the model's brightest cell brightness (see [`exposure_for`]) that a target's
+/// brightest cell may reach at unit exposure: above it, the appearance would have to sit at the
+/// top of Table 1's ranges, where the barrier holds it back and the annealer's moves cannot be
+/// paid for by the colours.
+const EXPOSURE_HEADROOM: f32 = 0.8;
+
+/// Exposure of the fit's renders for a prepared `target` (at `scene`'s framing, `c` pixels per
+/// cell): 1, unless the target's brightest cell (inner mean, brightest channel) is brighter than
+/// [`EXPOSURE_HEADROOM`] times what `cloth`'s geometry reaches with every albedo at 1 and no
+/// shadowing; then the ratio. A photo's exposure is arbitrary, while the model's lights have unit
+/// irradiance and its albedos stop at 1: an over-exposed photo (or a brighter light) otherwise
+/// pins every colour at the top of its range, and no pattern fits better than another. The
+/// exposure goes into the fitted scene, so the fit re-renders at the photo's brightness.
+pub(crate) fn exposure_for(target: &Image, cloth: &ClothParams, scene: &Scene, c: u32) -> f32 {
+    let mut bright = cloth.clone();
+    let a = &mut bright.appearance;
+    (a.r_b_e, a.r_b_a, a.s_b_e, a.s_b_a, a.r_s) = ([1.0; 3], [1.0; 3], [1.0; 3], [1.0; 3], [1.0; 3]);
+    (a.g_p, a.g_f) = (0.0, 0.0);
+    let model = crate::render::render(&bright, &Scene { exposure: 1.0, ..scene.clone() }, &Default::default());
+    let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+    let top = |p: &[f32; 3]| p.iter().copied().fold(0.0f32, f32::max);
+    let t = cell_means(target, n_e, n_a, c, 0.2).iter().map(top).fold(0.0f32, f32::max);
+    let cells = cell_means(&model, n_e, n_a, c, 0.2);
+    let m = cells.iter().map(top).sum::<f32>() / cells.len().max(1) as f32;
+    if m <= 0.0 || !t.is_finite() {
+        return 1.0;
+    }
+    (t / (EXPOSURE_HEADROOM * m)).max(1.0)
+}
+
+/// Blur factors (of the preparation's σ) that [`fit_view`] tries: a photo adds its own lens and
+/// focus blur, and the rectification's resampling adds some, on top of the preparation's.
+const VIEW_BLURS: [f32; 3] = [1.0, 1.5, 2.0];
+
+/// Largest shift (target pixels, each axis) that [`fit_view`] tries around the edge-based phase.
+const VIEW_SHIFT: i32 = 2;
+
+/// A change of view must lower the loss by this fraction to be taken (the default view is the
+/// preparation's blur and the edge-based phase).
+const VIEW_MARGIN: f32 = 0.01;
+
+/// The view of the target that fits `cloth` (the pre-estimate, appearance converged) best: the
+/// cyclic shift within ±[`VIEW_SHIFT`] pixels and the blur among [`VIEW_BLURS`]·`blur0`, scored
+/// by the loss of one render of `cloth` (no re-trace per variant). The edge fold of
+/// `target::cell_phase` is right to about a pixel; the model, once its pattern and colours are
+/// estimated, places the cell boundaries more precisely, and tells how much blur the photo adds.
+/// Returns the shift and the blur σ (pixels).
+pub(crate) fn fit_view(ev: &Evaluator, cloth: &ClothParams, blur0: f32) -> ((i32, i32), f32) {
+    let img = ev.record(cloth).shade(&cloth.appearance);
+    let sharp = |t: Image| ev.sibling(ev.scene().clone(), t, ev.block()).with_blur(0.0);
+    let base = sharp(ev.target().clone()).mse_of(&ev.observe(&img));
+    let mut best = ((0, 0), blur0, base * (1.0 - VIEW_MARGIN));
+    for f in VIEW_BLURS {
+        let seen = ev.sibling(ev.scene().clone(), ev.target().clone(), ev.block()).with_blur(blur0 * f).observe(&img);
+        for dy in -VIEW_SHIFT..=VIEW_SHIFT {
+            for dx in -VIEW_SHIFT..=VIEW_SHIFT {
+                let l = sharp(shift_periodic(ev.target(), dx, dy)).mse_of(&seen);
+                if l < best.2 {
+                    best = ((dx, dy), blur0 * f, l);
+                }
+            }
+        }
+    }
+    (best.0, best.1)
 }
 
 /// Load the pre-estimator `model` and apply its prediction on `crop` to `cloth`; a prediction
@@ -262,5 +332,41 @@ mod tests {
         assert_eq!(c.appearance.r_b_e, [0.5; 3]);
         assert_eq!(c.appearance.r_s, [0.5; 3]);
         assert!(c.body_texture.is_none());
+    }
+
+    #[test]
+    fn an_over_exposed_target_raises_the_exposure_and_a_plain_render_keeps_it() {
+        use crate::fit::demo::demo_cloth;
+        use crate::scene::LightRig;
+        let truth = demo_cloth();
+        let (n_e, n_a, c) = (truth.pattern.n_e(), truth.pattern.n_a(), 8);
+        let scene = fit_scene(n_e, n_a, c, 2, 1, &LightRig::default_rig());
+        let img = crate::render::render(&truth, &scene, &Default::default());
+        let start = default_cloth(super::super::candidates::default_twill(n_e, n_a));
+        assert_eq!(exposure_for(&img, &start, &scene, c), 1.0);
+        // The same cloth photographed 3× brighter than any albedo of the model can make it.
+        let bright = Image::new(img.width, img.height, img.data.iter().map(|p| p.map(|v| 3.0 * v)).collect());
+        let g = exposure_for(&bright, &start, &scene, c);
+        assert!(g > 1.5 && g.is_finite(), "{g}");
+        // A black target needs no exposure.
+        assert_eq!(exposure_for(&Image::filled(img.width, img.height, [0.0; 3]), &start, &scene, c), 1.0);
+    }
+
+    #[test]
+    fn the_view_finds_the_last_pixels_of_the_phase_and_the_extra_blur() {
+        use crate::fit::demo::demo_cloth;
+        use crate::scene::LightRig;
+        let truth = demo_cloth();
+        let (n_e, n_a, c) = (truth.pattern.n_e(), truth.pattern.n_a(), 10);
+        let scene = fit_scene(n_e, n_a, c, 4, 1, &LightRig::default_rig());
+        let img = crate::render::render(&truth, &scene, &Default::default());
+        let probe = Evaluator::new(scene.clone(), img.clone(), 2).with_blur(1.2);
+        // The target: the render blurred 1.5 times as much as the preparation's 0.8 px, and
+        // shifted by one pixel each way.
+        let target = shift_periodic(&probe.observe(&img), 1, -1);
+        let ev = Evaluator::new(scene, target, 2).with_blur(0.8);
+        let (shift, blur) = fit_view(&ev, &truth, 0.8);
+        assert_eq!(shift, (-1, 1));
+        assert!((blur - 1.2).abs() < 1e-6, "{blur}");
     }
 }

@@ -44,6 +44,87 @@ pub fn tile(img: &Image, nx: u32, ny: u32) -> Image {
     Image::new(w, h, data.collect())
 }
 
+/// Cyclic shift of a periodic image: pixel `(x, y)` of the result is pixel `(x + dx, y + dy)` of
+/// `img`, both taken modulo the image size (one repeat of a periodic image can start anywhere).
+pub fn shift_periodic(img: &Image, dx: i32, dy: i32) -> Image {
+    let (w, h) = (img.width as i32, img.height as i32);
+    let data = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| img.get((x + dx).rem_euclid(w) as u32, (y + dy).rem_euclid(h) as u32))
+        .collect();
+    Image::new(img.width, img.height, data)
+}
+
+/// Edge energy folded into one cell: the squared gradient of the sRGB luminance (central
+/// differences, wrapping around the repeat), averaged over every cell of an image of `c`-pixel
+/// cells at each offset `(u, v)` inside the cell; `c × c` values, row-major by `v`.
+///
+/// Which yarn lies on top changes from cell to cell, but every cell of a weave has its edges in
+/// the same places: the yarns' silhouettes run along the cell boundaries and the gaps (bright
+/// where the back light shows through, dark where a background does) sit at the cell corners,
+/// while the crowns of the yarns at the cell centres are smooth. The squared gradient does not
+/// care whether a gap is brighter or darker than the yarns, nor which colour either family has.
+pub fn folded_edges(img: &Image, c: u32) -> Vec<f32> {
+    let (w, h) = (img.width as i32, img.height as i32);
+    let lum: Vec<f32> = img.data.iter().map(|p| crate::image_io::linear_to_srgb((p[0] + p[1] + p[2]) / 3.0)).collect();
+    let at = |x: i32, y: i32| lum[(y.rem_euclid(h) * w + x.rem_euclid(w)) as usize];
+    let c = c.max(1) as i32;
+    let mut fold = vec![0.0f32; (c * c) as usize];
+    for y in 0..h {
+        for x in 0..w {
+            let gx = 0.5 * (at(x + 1, y) - at(x - 1, y));
+            let gy = 0.5 * (at(x, y + 1) - at(x, y - 1));
+            fold[((y % c) * c + x % c) as usize] += gx * gx + gy * gy;
+        }
+    }
+    let cells = ((w / c).max(1) * (h / c).max(1)) as f32;
+    fold.iter_mut().for_each(|v| *v /= cells);
+    fold
+}
+
+/// Sub-cell phase of a one-repeat `target` against a `model` render of the same grid at `c`
+/// pixels per cell: the cyclic shift `(dx, dy)`, each in `(−c/2, c/2]`, for which
+/// [`shift_periodic`]`(target, dx, dy)` has its cell boundaries where the model has them. It
+/// maximises the correlation of the two [`folded_edges`] over all `c × c` cyclic shifts (a 2-D
+/// cross-correlation of the edge energy folded into one cell), which needs no pattern: a crop that
+/// starts half a cell off the yarn grid puts its edges in the middle of the model's cells.
+/// Returns the shift and the correlation coefficient it reaches (0 when either fold is flat).
+pub fn cell_phase(target: &Image, model: &Image, c: u32) -> ((i32, i32), f32) {
+    let (ft, fm) = (folded_edges(target, c), folded_edges(model, c));
+    let centred = |f: &[f32]| {
+        let m = f.iter().sum::<f32>() / f.len().max(1) as f32;
+        let d: Vec<f32> = f.iter().map(|v| v - m).collect();
+        let n = d.iter().map(|v| v * v).sum::<f32>().sqrt();
+        (d, n)
+    };
+    let ((dt, nt), (dm, nm)) = (centred(&ft), centred(&fm));
+    if nt <= 0.0 || nm <= 0.0 {
+        return ((0, 0), 0.0);
+    }
+    let c = c.max(1) as i32;
+    let signed = |s: i32| if s > c / 2 { s - c } else { s };
+    let mut best: ((i32, i32), f32) = ((0, 0), f32::NEG_INFINITY);
+    for sy in 0..c {
+        for sx in 0..c {
+            let mut acc = 0.0f32;
+            for v in 0..c {
+                for u in 0..c {
+                    acc += dt[(((v + sy) % c) * c + (u + sx) % c) as usize] * dm[(v * c + u) as usize];
+                }
+            }
+            let s = (signed(sx), signed(sy));
+            // Ties (a fold with a symmetry) go to the smaller shift.
+            let better = acc > best.1 + 1e-9 * nt * nm
+                || ((acc - best.1).abs() <= 1e-9 * nt * nm
+                    && s.0.abs() + s.1.abs() < best.0 .0.abs() + best.0 .1.abs());
+            if better {
+                best = (s, acc);
+            }
+        }
+    }
+    (best.0, best.1 / (nt * nm))
+}
+
 /// Least geometric mean of the two comb fractions of a yarn count (see [`yarn_count`]).
 const COMB_MIN: f32 = 0.45;
 
@@ -318,6 +399,7 @@ pub fn orientation_labelling(img: &Image, n_e: usize, n_a: usize, c: u32) -> Opt
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::LightRig;
 
     /// A one-repeat image whose cells are painted with colour `a` where `p` is 1 and `b` where 0,
     /// with a dark border in every cell (the part `cell_means` ignores) and a little noise.
@@ -387,5 +469,36 @@ mod tests {
         assert_eq!(idx.len(), 5);
         assert!(idx.iter().all(|&i| (20..25).contains(&i)));
         assert!(mean_at(&img, &idx).iter().all(|v| (v - 0.8).abs() < 1e-5));
+    }
+
+    #[test]
+    fn the_sub_cell_phase_of_a_shifted_crop_is_found_without_its_pattern() {
+        use crate::fit::demo::demo_cloth;
+        use crate::render::{render, RenderOptions};
+        let truth = demo_cloth();
+        let (n_e, n_a, c) = (truth.pattern.n_e(), truth.pattern.n_a(), 10);
+        let scene = fit_scene(n_e, n_a, c, 4, 2, &LightRig::default_rig());
+        let ro = RenderOptions { threads: Some(1), ..Default::default() };
+        let img = render(&truth, &scene, &ro);
+        // The model has another pattern, other radii and a grey appearance: only the cell
+        // structure is shared.
+        let mut model = truth.clone();
+        model.pattern = crate::fit::default_twill(n_e, n_a);
+        (model.r_e, model.r_a, model.appearance) = (4.0, 4.0, crate::fit::grey_appearance());
+        let m = render(&model, &scene, &ro);
+        assert_eq!(cell_phase(&img, &m, c).0, (0, 0));
+        for (dx, dy) in [(3, -4), (5, 5), (-2, 1)] {
+            let shifted = shift_periodic(&img, dx, dy);
+            let ((sx, sy), r) = cell_phase(&shifted, &m, c);
+            // Undoing the shift modulo a cell (a whole-cell shift is a shift of the pattern).
+            let wrap = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+            assert!(wrap(sx + dx).abs() <= 1 && wrap(sy + dy).abs() <= 1, "({dx},{dy}) -> ({sx},{sy}) r {r}");
+            assert!(r > 0.5, "{r}");
+        }
+        // A flat image has no phase.
+        assert_eq!(cell_phase(&Image::filled(50, 50, [0.5; 3]), &m, c), ((0, 0), 0.0));
+        // The shift wraps around: shifting back restores the image.
+        let s = shift_periodic(&shift_periodic(&img, 7, -3), -7, 3);
+        assert_eq!(s.data, img.data);
     }
 }
