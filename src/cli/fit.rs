@@ -82,11 +82,14 @@ pub struct FitArgs {
     /// against the yarn centres; written to capture.json); without preparation, `default`.
     #[arg(long)]
     pub lights: Option<LightRig>,
-    /// Pre-estimator network for the parameters without an analytic pre-estimate (e.g.
-    /// models/pre_estimator.safetensors). Off by default: the shipped model made fits worse (pattern
-    /// exact 0.50 vs 0.75 without it, docs/benchmarks.md).
+    /// Pre-estimator network file replacing the shipped one (built into the binary), e.g. a model
+    /// trained with `woven train` (train/run/model.safetensors).
     #[arg(long)]
     pub model: Option<PathBuf>,
+    /// Do not read the target with the pre-estimator network (its pattern is otherwise one more
+    /// pre-estimation candidate).
+    #[arg(long)]
+    pub no_network: bool,
     /// Energy per unit MSE of the annealing, a finite number > 0 (default: calibrated so half of
     /// early uphill moves pass).
     #[arg(long, allow_negative_numbers = true, value_parser = parse_energy_scale)]
@@ -122,6 +125,7 @@ impl FitArgs {
         o.input.prep = !self.no_prep;
         o.pre.enabled = !self.no_pre_estimate;
         o.pre.model = self.model.clone();
+        o.pre.network = !self.no_network;
         o.joint.mode = self.mode.into();
         o.joint.iterations = if self.fast { o.joint.iterations.min(self.iterations) } else { self.iterations };
         o.joint.energy_scale = self.energy_scale;
@@ -585,6 +589,8 @@ pub enum AblationArg {
     NoPre,
     /// Pattern first, then appearance.
     Separate,
+    /// Pre-estimation without the network's pattern.
+    NoNetwork,
 }
 
 impl From<AblationArg> for Ablation {
@@ -593,6 +599,7 @@ impl From<AblationArg> for Ablation {
             AblationArg::None => Ablation::None,
             AblationArg::NoPre => Ablation::NoPre,
             AblationArg::Separate => Ablation::Separate,
+            AblationArg::NoNetwork => Ablation::NoNetwork,
         }
     }
 }
@@ -606,7 +613,7 @@ pub struct EvalArgs {
     /// Seed of the targets.
     #[arg(long, default_value_t = 1, allow_negative_numbers = true, value_parser = super::parse_seed)]
     pub seed: u64,
-    /// Ablation: none, no-pre, separate.
+    /// Ablation: none, no-pre, separate, no-network.
     #[arg(long, value_enum, default_value = "none")]
     pub ablation: AblationArg,
     /// Optimization iterations per fit.

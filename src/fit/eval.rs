@@ -34,15 +34,18 @@ pub enum Ablation {
     NoPre,
     /// Pattern first, then appearance.
     Separate,
+    /// Pre-estimation without the network's pattern.
+    NoNetwork,
 }
 
 impl Ablation {
-    /// Name on the command line and in the report: `none`, `no-pre`, `separate`.
+    /// Name on the command line and in the report: `none`, `no-pre`, `separate`, `no-network`.
     pub fn name(&self) -> &'static str {
         match self {
             Ablation::None => "none",
             Ablation::NoPre => "no-pre",
             Ablation::Separate => "separate",
+            Ablation::NoNetwork => "no-network",
         }
     }
 }
@@ -171,6 +174,7 @@ fn fit_options(opts: &EvalOptions, i: usize) -> FitOptions {
     match opts.ablation {
         Ablation::None => {}
         Ablation::NoPre => o.pre.enabled = false,
+        Ablation::NoNetwork => o.pre.network = false,
         Ablation::Separate => o.joint.mode = FitMode::Separate,
     }
     o

@@ -106,7 +106,10 @@ pub struct PreOptions {
     pub starts: usize,
     /// A runner-up gets its own run when its warm-up loss is within this fraction of the leader's.
     pub start_margin: f32,
-    /// Pre-estimator model; used when given.
+    /// Read the target with the pre-estimator network (the model in `model`, else the shipped one
+    /// built into the binary): its pattern joins the shortlist when the ranking did not pick it.
+    pub network: bool,
+    /// Pre-estimator model file replacing the shipped one.
     pub model: Option<PathBuf>,
 }
 
@@ -121,8 +124,9 @@ impl Default for PreOptions {
             max_sweeps: 1,
             starts: 2,
             start_margin: 0.15,
-            // Off by default: with the shipped network (23 % validation accuracy) the fit recovered
-            // fewer patterns (eval: 0.50 exact vs 0.75 without it); `--model FILE` turns it on.
+            // On: the network reads the fit's view (per-cell logits); its pattern is one more
+            // candidate, judged by the same warm-up loss as the ranked one (docs/design.md §4.3).
+            network: true,
             model: None,
         }
     }

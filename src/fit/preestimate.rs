@@ -10,7 +10,7 @@ use super::candidates::{best_variant, greedy_sweeps, rank_candidates};
 use super::colours::{estimate_colours, pattern_loss};
 use super::evaluator::{state_loss, Evaluator};
 use super::options::PreOptions;
-use super::target::{cell_means, fit_scene, resample, shift_periodic, tile};
+use super::target::{cell_means, fit_scene, resample, shift_periodic};
 use super::{refine, Stage};
 use crate::image_io::Image;
 use crate::params::{Appearance, ClothParams, NP_RANGE, RADIUS_RANGE};
@@ -79,9 +79,13 @@ pub(crate) fn pre_estimate(
     } else {
         vec![cloth.pattern.clone()]
     };
-    let mut cloth = cloth;
-    if let Some(m) = &opts.model {
-        apply_model(&mut cloth, crop, m, warnings)?;
+    let mut shortlist = shortlist;
+    if st.cells && opts.network {
+        if let Some(p) = network_pattern(st.ev.target(), (n_e, n_a), opts.model.as_deref(), warnings)? {
+            if !shortlist.contains(&p) {
+                shortlist.push(p);
+            }
+        }
     }
     // Warm-up: every shortlisted pattern gets its shape scans, colour estimate and a polish at
     // the fit's resolution; the best goes on. Candidates are compared only once their appearance
@@ -171,24 +175,37 @@ pub(crate) fn fit_view(ev: &Evaluator, cloth: &ClothParams, blur0: f32) -> ((i32
     (best.0, best.1)
 }
 
-/// Load the pre-estimator `model` and apply its prediction on `crop` to `cloth`; a prediction
-/// that fails on the input leaves the defaults with a warning.
-fn apply_model(cloth: &mut ClothParams, crop: &Image, model: &Path, warnings: &mut Vec<String>) -> Result<()> {
-    let net = crate::net::PreEstimator::load(model)
-        .with_context(|| format!("loading the pre-estimator {} (given with --model)", model.display()))?;
-    // The network was trained on views of 1.5–4 repeats: show it the repeat tiled 3×3.
-    match net.predict(&tile(crop, 3, 3).to_rgb32f()) {
-        Ok(pred) => apply_network(cloth, &pred),
-        Err(e) => warnings.push(format!("pre-estimator failed on the input ({e}); using defaults")),
+/// The pattern the pre-estimator network reads in the fit's target (`n_e × n_a` cells): one
+/// over/under logit per cell, averaged over the copies of each cell in the network's tiled view
+/// (`net::read_view`). `model` replaces the shipped network. `None` (with a warning) when the
+/// network cannot read the target or reads a pattern in which a yarn floats; a model file that
+/// cannot be loaded is an error (it was asked for).
+fn network_pattern(
+    target: &Image,
+    (n_e, n_a): (usize, usize),
+    model: Option<&Path>,
+    warnings: &mut Vec<String>,
+) -> Result<Option<WeavePattern>> {
+    let net = match model {
+        Some(m) => crate::net::PreEstimator::load(m)
+            .with_context(|| format!("loading the pre-estimator {} (given with --model)", m.display()))?,
+        None => crate::pre::shipped_model().context("loading the shipped pre-estimator")?,
+    };
+    // Unreduced: the shortlist's patterns live on the fit's grid.
+    let read = crate::net::read_view(&net, target, n_e, n_a).map_err(anyhow::Error::from).and_then(|v| {
+        let p = WeavePattern::from_rows_unreduced(&v.cells())?;
+        if p.has_unbound_yarn() {
+            anyhow::bail!("a yarn floats in the pattern read ({p})");
+        }
+        Ok(p)
+    });
+    match read {
+        Ok(p) => Ok(Some(p)),
+        Err(e) => {
+            warnings.push(format!("the pre-estimator network gave no usable pattern ({e:#}); ranked candidates only"));
+            Ok(None)
+        }
     }
-    Ok(())
-}
-
-/// Apply a pre-estimator prediction: everything but the pattern and the colours that the colour
-/// pre-estimate computes from the picture (`R^S`, `R^B_e`, `R^B_a`), each clamped into its range.
-fn apply_network(cloth: &mut ClothParams, pred: &crate::net::Prediction) {
-    use crate::params::param::{R_B_A, R_B_E, R_S};
-    pred.apply_to(cloth, |p| !(R_S..R_S + 3).contains(&p.index) && !(R_B_E..R_B_A + 3).contains(&p.index));
 }
 
 /// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and

@@ -90,8 +90,9 @@ fn wrap_coord(x: f32, size: f32) -> f32 {
     if (0.0..size).contains(&x) {
         return x;
     }
-    if !(x.abs() < 1e6) {
-        // Far from the tile the floored quotient loses precision: take the exact remainder.
+    if x.abs() >= 1e6 || x.is_nan() {
+        // Far from the tile the floored quotient loses precision: take the exact remainder (NaN
+        // stays NaN, as with `rem_euclid`).
         return x.rem_euclid(size);
     }
     let mut r = x - super::bspline::floor_fast(x / size) * size;
