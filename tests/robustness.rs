@@ -242,7 +242,8 @@ fn train_never_replaces_the_shipped_model_by_default() {
     std::fs::write(root.join("recipe.toml"), recipe).unwrap();
     std::fs::write(
         root.join("train/config.toml"),
-        "input_size = 16\nbackbone = [4, 8]\n[train]\nepochs = 1\nbatch_size = 8\nval_fraction = 0.0\n",
+        // 32 px views at the recipe's 8 px per cell: 4 × 4 cells, three pooled blocks.
+        "input_size = 32\nbackbone = [4, 8, 8]\n[train]\nepochs = 1\nbatch_size = 8\nval_fraction = 0.0\n",
     )
     .unwrap();
     let run = |args: &[&str]| {
@@ -258,7 +259,7 @@ fn train_never_replaces_the_shipped_model_by_default() {
         "--count",
         "12",
         "--size",
-        "16",
+        "32",
         "--threads",
         "2",
     ]);
