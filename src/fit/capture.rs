@@ -47,7 +47,7 @@ pub const FRONT_SHARE: f32 = 0.1;
 /// Offset, in pitches, at which [`estimate_capture`] looks whether a bright lattice point is a
 /// small spot (a hole) or part of a yarn: past the edge of an open hole (the loose plain weave of
 /// the renders has holes 0.32 pitch wide) but inside the cell of a float.
-const SPOT_REACH: f32 = 0.35;
+pub const SPOT_REACH: f32 = 0.35;
 
 /// Largest brightness share kept [`SPOT_REACH`] pitches from a bright lattice point for it to be a
 /// hole (`reach` of [`CaptureEstimate`]). Renders lit from behind give 0.02–0.38, front-lit

@@ -1,7 +1,7 @@
 //! Evaluation on real photos (`woven eval --real DIR`, issue 14): fits every photo listed in
 //! `DIR/labels.csv` the way a user would (`woven fit PHOTO` with no flags: preparation, the capture
 //! estimated from the photo, the fit) and scores what a label can check and what a user sees:
-//! - the weave class of the fitted pattern ([`WeavePattern::weave_class`]: plain, twill, satin,
+//! - the weave class of the fitted pattern ([`crate::pattern::WeavePattern::weave_class`]: plain, twill, satin,
 //!   basket, other — equal up to shift, rotation, transposition and inversion) against the label;
 //! - PSNR and SSIM of the fit, registered to the photo ([`registered_render`]), against the whole
 //!   photo, beside the PSNR of the fit against the one-repeat crop it matched;
