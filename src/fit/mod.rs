@@ -6,7 +6,8 @@
 //! 2. `preestimate`: whole-pattern candidates (the cells read from the picture:
 //!    yarn directions and both labellings of the colour clusters; every named weave in every
 //!    shift) ranked on the coarse colour layout (`candidates`); the best, the best named weave and
-//!    the labellings read from the picture go on → network pre-estimation (when a model is given)
+//!    the labellings read from the picture go on, with the pattern the pre-estimator network reads
+//!    (per-cell logits; on by default)
 //!    → per candidate a radius and ply-count scan, the colour pre-estimate (`colours`, converted to
 //!    `R^B` through the renderer's response) and a fixed-pattern polish (Levenberg–Marquardt on the
 //!    appearance, Newton steps of the radii; `refine`) → a greedy cell sweep of each start.

@@ -1,7 +1,7 @@
 //! Pre-estimation (paper §5): from the default cloth (twill or the fixed pattern, grey
 //! appearance) to the starts of the joint runs. Whole-pattern candidates are ranked on the coarse
-//! colour layout (`candidates::rank_candidates`); the network sets the parameters it predicts
-//! (when a model is given); every shortlisted pattern is warmed up — radius and ply scans, the
+//! colour layout (`candidates::rank_candidates`); the pre-estimator network's reading of the cells
+//! joins them (unless turned off); every shortlisted pattern is warmed up — radius and ply scans, the
 //! colour estimate converted through the renderer, a short Levenberg–Marquardt descent per shape
 //! variant, a polish of the best — and the best warmed-up candidates, each after a greedy cell
 //! sweep, become the starts.
