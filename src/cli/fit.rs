@@ -10,15 +10,15 @@ use std::time::Instant;
 use woven::fit::capture::{estimate_capture, CaptureEstimate};
 use woven::fit::demo::{demo_cloth, param_errors, synthetic_target};
 use woven::fit::eval::{eval, Ablation, EvalOptions, EvalPath};
-use woven::fit::output::{photo_scores, registered_render};
+use woven::fit::output::photo_scores;
 use woven::fit::real::{eval_real, RealOptions};
 use woven::fit::renders::eval_renders;
 use woven::fit::report::quantile;
-use woven::fit::{check_input, fit, write_fit_outputs, FitMode, FitOptions, FitResult, MIN_INPUT_SIDE};
+use woven::fit::{check_input, fit, fit_prepared, write_fit_outputs, FitMode, FitOptions, FitResult, MIN_INPUT_SIDE};
 use woven::image_io::Image;
 use woven::params::{ClothParams, APPEARANCE_RANGES};
 use woven::pattern::{WeavePattern, MAX_SIDE};
-use woven::prep::{diagnostic_overlay, prepare, PrepOptions};
+use woven::prep::{diagnostic_overlay, prepare, PrepOptions, Prepared};
 use woven::progress::Progress;
 use woven::scene::LightRig;
 
@@ -196,7 +196,15 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     let input =
         Image::load(&args.image, MIN_INPUT_SIDE).with_context(|| format!("loading {}", args.image.display()))?;
     check_input(&input).with_context(|| format!("checking {}", args.image.display()))?;
-    let capture = if args.no_prep { None } else { prepare_photo(&input, &args.image, &args.out)? };
+    // Prepared once here (the capture is estimated from it, and a photo without a grid fails in
+    // seconds); the fit takes this preparation instead of running it again.
+    let (prepared, capture) = match args.no_prep {
+        true => (None, None),
+        false => {
+            let (p, c) = prepare_photo(&input, &args.image, &args.out)?;
+            (Some(p), c)
+        }
+    };
     if let Some(c) = &capture {
         if args.lights.is_none() {
             opts.render.lights = c.capture.rig();
@@ -228,13 +236,14 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         input.height
     );
     let (res, stopped, scores) = beat.run(|| {
-        let res = fit(&input, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
+        let res = fit_prepared(&input, prepared, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
         // The flag also counts when it was set during the finish, which cuts the polish short
         // without marking the result as stopped.
         let stopped = res.stopped || stop.load(Ordering::SeqCst);
         warn_all(&res.warnings);
         beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
-        warn_all(&write_fit_outputs(&res, staging.dir(), !args.no_noise, args.threads)?);
+        let written = write_fit_outputs(&res, staging.dir(), !args.no_noise, args.threads)?;
+        warn_all(&written.warnings);
         if let Some(c) = &capture {
             let record = serde_json::json!({
                 "estimate": c,
@@ -245,9 +254,8 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
                 serde_json::to_string_pretty(&record)?.as_bytes(),
             )?;
         }
-        beat.phase("scoring the fit against the whole photo (registered render)");
-        let scores =
-            registered_render(&res, (input.width, input.height), args.threads).map(|r| photo_scores(&r, &input));
+        // fit.png's registered render, before its noise: the photo's size (the output framing).
+        let scores = written.registered.as_ref().map(|r| photo_scores(r, &input));
         Ok((res, stopped, scores))
     })?;
     let dest = if stopped { sibling(&args.out, "partial")? } else { args.out.clone() };
@@ -270,14 +278,18 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     Ok(())
 }
 
-/// Prepare the photo before the fit (a second at most; the fit prepares it again): estimates its
-/// capture, and refuses in seconds a photo whose repeat cannot be found, writing what preparation
-/// saw (the rectified photo with the yarn grid it found) to `OUT.prep-grid.png` beside `--out` so
-/// the user can see why. `None` when the grid leaves nothing to measure the capture on.
-fn prepare_photo(input: &Image, image: &Path, out: &Path) -> Result<Option<CaptureEstimate>> {
+/// Prepare the photo before the fit (a second at most; the fit then uses this preparation):
+/// estimates its capture, and refuses in seconds a photo whose repeat cannot be found, writing what
+/// preparation saw (the rectified photo with the yarn grid it found) to `OUT.prep-grid.png` beside
+/// `--out` so the user can see why. The capture is `None` when the grid leaves nothing to measure
+/// it on.
+fn prepare_photo(input: &Image, image: &Path, out: &Path) -> Result<(Prepared, Option<CaptureEstimate>)> {
     let rgb = input.to_rgb32f();
     match prepare(&rgb, &PrepOptions::default()) {
-        Ok(p) => Ok(estimate_capture(&p)),
+        Ok(p) => {
+            let capture = estimate_capture(&p);
+            Ok((p, capture))
+        }
         Err(e) => {
             let mut msg = format!("preparing {}: {e}", image.display());
             if let Some(ov) = diagnostic_overlay(&rgb, &PrepOptions::default()) {
@@ -555,7 +567,7 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
         let res = fit(&target, &opts)?;
         warn_all(&res.warnings);
         beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
-        warn_all(&write_fit_outputs(&res, staging.dir(), false, threads)?);
+        warn_all(&write_fit_outputs(&res, staging.dir(), false, threads)?.warnings);
         Ok(res)
     })?;
     staging.install(out_dir)?;

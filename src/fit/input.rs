@@ -68,11 +68,20 @@ pub(crate) struct FitTarget {
     pub blur_px: f32,
 }
 
-/// The target of `input` at `c` pixels per cell (see the module docs).
-pub(crate) fn prepare_target(input: &Image, opts: &InputOptions, c: u32) -> Result<FitTarget> {
+/// The target of `input` at `c` pixels per cell (see the module docs); with `opts.prep`, the
+/// preparation `prepared` when given (done by the caller on `input`), else prepared here.
+pub(crate) fn prepare_target(
+    input: &Image,
+    prepared: Option<crate::prep::Prepared>,
+    opts: &InputOptions,
+    c: u32,
+) -> Result<FitTarget> {
     let (crop, prep, found) = if opts.prep {
-        let p = crate::prep::prepare(&input.to_rgb32f(), &crate::prep::PrepOptions::default())
-            .context("preparing the input (use --no-prep for a clean one-repeat crop)")?;
+        let p = match prepared {
+            Some(p) => p,
+            None => crate::prep::prepare(&input.to_rgb32f(), &crate::prep::PrepOptions::default())
+                .context("preparing the input (use --no-prep for a clean one-repeat crop)")?,
+        };
         let reg = Image::from_rgb32f(&p.regularized);
         let crop = reg.crop(p.crop.x, p.crop.y, p.crop.w, p.crop.h);
         let g = (p.n_e, p.n_a);
@@ -220,7 +229,7 @@ mod tests {
     fn the_target_is_resampled_to_the_cells() {
         let img = Image::filled(40, 20, [0.25; 3]);
         let opts = InputOptions { prep: false, grid: Some((2, 4)), pattern: None };
-        let t = prepare_target(&img, &opts, 6).unwrap();
+        let t = prepare_target(&img, None, &opts, 6).unwrap();
         assert_eq!((t.grid, t.image.width, t.image.height), ((2, 4), 24, 12));
         assert!(t.prep.is_none() && t.crop.width == 40);
         assert!(t.image.data.iter().all(|p| (p[0] - 0.25).abs() < 1e-6));

@@ -61,7 +61,7 @@ pub use joint::{Checkpoint, IterLog};
 pub use options::{
     Control, FinishOptions, FitMode, FitOptions, InputOptions, IterCallback, JointOptions, PreOptions, RenderSettings,
 };
-pub use output::write_fit_outputs;
+pub use output::{write_fit_outputs, Written};
 pub use preestimate::grey_appearance;
 pub use proposal::Proposal;
 
@@ -134,16 +134,23 @@ pub(crate) struct Stage<'a> {
 
 /// Fit cloth parameters to `input` (linear RGB). See the module docs.
 pub fn fit(input: &Image, opts: &FitOptions) -> Result<FitResult> {
+    fit_prepared(input, None, opts)
+}
+
+/// [`fit`] with the preparation of `input` already done (`prep::prepare` with the default
+/// options, e.g. by a caller that estimated the capture from it first): used instead of preparing
+/// again when `opts.input.prep` is on; `None` is [`fit`].
+pub fn fit_prepared(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOptions) -> Result<FitResult> {
     check_input(input)?;
     opts.validate()?;
-    crate::render::run_in_pool(opts.control.threads, || pipeline(input, opts))
+    crate::render::run_in_pool(opts.control.threads, || pipeline(input, prepared, opts))
 }
 
 /// The stages of [`fit`] in order.
-fn pipeline(input: &Image, opts: &FitOptions) -> Result<FitResult> {
+fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOptions) -> Result<FitResult> {
     let clock = Instant::now();
     let r = &opts.render;
-    let mut target = input::prepare_target(input, &opts.input, r.px_per_cell)?;
+    let mut target = input::prepare_target(input, prepared, &opts.input, r.px_per_cell)?;
     let (n_e, n_a) = target.grid;
     let pattern0 = opts.input.pattern.as_ref().map_or_else(|| default_twill(n_e, n_a), candidates::unreduced);
     // A prepared crop is put on the model's cell grid (`input::align_to_cells`); a one-repeat

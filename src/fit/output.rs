@@ -373,8 +373,9 @@ fn fraction(k: usize, x: f64) -> f64 {
 /// Every output of a fit in `dir`: with preparation, noise post-estimation (paper §6.3) — the
 /// residual rectified − regularized gives `noise.json`, whose synthesized noise is added to
 /// `fit.png` unless `add_noise` is false — then the files of [`write_outputs`] and the yarn
-/// geometry in `export/` (PLY + Mitsuba 3 scene). Returns warnings (no noise model).
-pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: Option<usize>) -> Result<Vec<String>> {
+/// geometry in `export/` (PLY + Mitsuba 3 scene). Returns warnings (no noise model) and the
+/// registered render (see [`Written`]).
+pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: Option<usize>) -> Result<Written> {
     let mut warnings = Vec::new();
     let mut noise = None;
     if let Some(p) = &res.prep {
@@ -389,20 +390,31 @@ pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: 
             Err(e) => warnings.push(format!("no noise model ({e})")),
         }
     }
-    write_outputs(res, dir, threads, noise.as_ref().filter(|_| add_noise))?;
+    let registered = write_outputs(res, dir, threads, noise.as_ref().filter(|_| add_noise))?;
     crate::export::export(&res.params, &dir.join("export"), &crate::export::ExportOptions::default())
         .context("exporting the yarn geometry")?;
-    Ok(warnings)
+    Ok(Written { warnings, registered })
+}
+
+/// What [`write_fit_outputs`] hands back besides the files.
+pub struct Written {
+    /// Warnings (no noise model).
+    pub warnings: Vec<String>,
+    /// With preparation, [`registered_render`] at the photo's size, before the photo noise that
+    /// `fit.png` adds: what the fit is scored with against the whole photo ([`photo_scores`]),
+    /// rendered once for both.
+    pub registered: Option<Image>,
 }
 
 /// Write the files of a fit into `dir` (created): `fit.json`, `prep.json` (with preparation),
-/// `log.jsonl`, `fit.png` (with `noise` added when given), `compare.png`, `trace.png`.
+/// `log.jsonl`, `fit.png` (with `noise` added when given), `compare.png`, `trace.png`. Returns the
+/// registered render before the noise (`None` without preparation).
 pub fn write_outputs(
     res: &FitResult,
     dir: &Path,
     threads: Option<usize>,
     noise: Option<&crate::noise::NoiseModel>,
-) -> Result<()> {
+) -> Result<Option<Image>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     res.params.save(&dir.join("fit.json")).with_context(|| format!("writing {}", dir.join("fit.json").display()))?;
     if let Some(p) = &res.prep {
@@ -417,8 +429,9 @@ pub fn write_outputs(
     // With preparation, fit.png is registered to the photo (its size, rotation, perspective and
     // phase); without, the input is one repeat and `params.scene` frames it.
     let size = (res.params.scene.width, res.params.scene.height);
-    let mut full = match registered_render(res, size, threads) {
-        Some(img) => img,
+    let registered = registered_render(res, size, threads);
+    let mut full = match &registered {
+        Some(img) => img.clone(),
         None => render(&res.params.cloth, &res.params.scene, &RenderOptions { threads, ..Default::default() }),
     };
     if let Some(m) = noise {
@@ -427,7 +440,7 @@ pub fn write_outputs(
     full.save_png(&dir.join("fit.png"))?;
     write_compare(res, &dir.join("compare.png"))?;
     write_trace(res, &dir.join("trace.png"))?;
-    Ok(())
+    Ok(registered)
 }
 
 #[cfg(test)]

@@ -15,7 +15,7 @@
 use super::capture::{estimate_capture, CaptureEstimate};
 use super::output::{photo_scores, registered_render, write_fit_outputs, PhotoScores};
 use super::report::quantile;
-use super::{fit, FitOptions};
+use super::{fit_prepared, FitOptions};
 use crate::image_io::Image;
 use crate::pattern::WeaveClass;
 use crate::prep::{diagnostic_overlay, prepare, PrepOptions};
@@ -262,7 +262,7 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
     // Preparation runs here first (about a second at most) to estimate the capture before the fit,
     // and so that a photo whose repeat cannot be found fails in seconds with the overlay to look at.
     let rgb = input.to_rgb32f();
-    match prepare(&rgb, &PrepOptions::default()) {
+    let prepared = match prepare(&rgb, &PrepOptions::default()) {
         Ok(p) => {
             if opts.estimate_lights {
                 case.capture = estimate_capture(&p);
@@ -270,6 +270,7 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
                     fopts.render.lights = k.capture.rig();
                 }
             }
+            p
         }
         Err(e) => {
             case.secs = t.elapsed().as_secs_f64();
@@ -287,20 +288,21 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
             }
             return case;
         }
-    }
-    match fit(&input, &fopts) {
+    };
+    // The fit takes this preparation rather than running it again.
+    match fit_prepared(&input, Some(prepared), &fopts) {
         Ok(res) => {
             case.secs = t.elapsed().as_secs_f64();
             case.class = Some(res.params.cloth.pattern.weave_class());
             case.pattern = res.params.cloth.pattern.to_string();
             case.crop_psnr_db = Some(res.psnr_db);
-            if let Some(reg) = registered_render(&res, (input.width, input.height), fopts.control.threads) {
-                case.photo = Some(photo_scores(&reg, &input));
-                case.row = Some(sheet_row(&input, &reg));
-            }
+            let threads = fopts.control.threads;
+            // Saved, fit.png's registered render (before its noise) is the one scored.
+            let mut registered = None;
             if let Some(s) = &opts.save {
                 let d = save_dir(s, &label.path);
-                let written = write_fit_outputs(&res, &d, true, fopts.control.threads).and_then(|_| {
+                let written = write_fit_outputs(&res, &d, true, threads).and_then(|w| {
+                    registered = w.registered;
                     let json = serde_json::to_string_pretty(&case.capture)?;
                     crate::io::write_atomic(&d.join("capture.json"), json.as_bytes())?;
                     Ok(())
@@ -308,6 +310,10 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
                 if let Err(e) = written {
                     case.error = Some(format!("fitted, but writing {} failed: {e:#}", d.display()));
                 }
+            }
+            if let Some(reg) = registered.or_else(|| registered_render(&res, (input.width, input.height), threads)) {
+                case.photo = Some(photo_scores(&reg, &input));
+                case.row = Some(sheet_row(&input, &reg));
             }
         }
         Err(e) => {
