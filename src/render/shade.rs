@@ -24,6 +24,31 @@ fn multiplier(tex: Option<&BodyTexture>, vx: &PathVertex) -> [f32; 3] {
     }
 }
 
+/// Specular and body transmittance `(τS, τB)` at vertex `vx`, from those accumulated before it: an
+/// exit vertex y multiplies in the Beer–Lambert attenuation `τ^{N_i}` of its chord (BYSDF eq. 3).
+fn attenuated<T: Real>(p: &ShadeParams<T>, vx: &PathVertex, tau_s: T, tau_b: T) -> (T, T) {
+    if vx.kind == VertexKind::Y {
+        (tau_s * attenuation(p.a_s, vx.chord, vx.n_i), tau_b * attenuation(p.a_b, vx.chord, vx.n_i))
+    } else {
+        (tau_s, tau_b)
+    }
+}
+
+/// The path throughput after the refraction sampled at `vx`: `thr *= T·f_t(θ)·|c_t| / p(θ₀)`
+/// (times the Russian-roulette weight). `false` when the path ends at `vx`.
+fn refract<T: Real>(p: &ShadeParams<T>, vx: &PathVertex, thr: &mut [T; 3]) -> bool {
+    let Some((l, pdf)) = vx.refr else { return false };
+    let (alpha, eta, col) = match vx.kind {
+        VertexKind::X => (p.alpha, p.eta, p.t_s),
+        VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
+    };
+    let w = transmit_cos(vx.v, l, alpha, eta) * (1.0 / pdf);
+    for k in 0..3 {
+        thr[k] *= col[k] * w * vx.rr;
+    }
+    true
+}
+
 /// Radiance of one recorded path under parameters `p`, with an optional body-colour texture; when
 /// `body_out` is given, each textured vertex's body radiance (before the multiplier) is appended to it
 /// with its texel slot.
@@ -40,11 +65,7 @@ pub fn shade_path<T: Real>(
     let mut tau_s = T::c(1.0);
     let mut tau_b = T::c(1.0);
     for vx in verts {
-        let (ts, tb) = if vx.kind == VertexKind::Y {
-            (tau_s * attenuation(p.a_s, vx.chord, vx.n_i), tau_b * attenuation(p.a_b, vx.chord, vx.n_i))
-        } else {
-            (tau_s, tau_b)
-        };
+        let (ts, tb) = attenuated(p, vx, tau_s, tau_b);
         let (start, count) = vx.lights;
         let m = multiplier(tex, vx);
         let mut body_sum = [0.0f32; 3];
@@ -65,16 +86,7 @@ pub fn shade_path<T: Real>(
             };
             acc.push((slot, body_sum));
         }
-        if let Some((l, pdf)) = vx.refr {
-            let (alpha, eta, col) = match vx.kind {
-                VertexKind::X => (p.alpha, p.eta, p.t_s),
-                VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
-            };
-            let w = transmit_cos(vx.v, l, alpha, eta) * (1.0 / pdf);
-            for k in 0..3 {
-                thr[k] *= col[k] * w * vx.rr;
-            }
-        } else {
+        if !refract(p, vx, &mut thr) {
             break;
         }
         tau_s = ts;
@@ -170,11 +182,7 @@ pub fn shade_path_gradient(
     let mut tau_s = Dual::c(1.0);
     let mut tau_b = Dual::c(1.0);
     for vx in verts {
-        let (ts, tb) = if vx.kind == VertexKind::Y {
-            (tau_s * attenuation(p.a_s, vx.chord, vx.n_i), tau_b * attenuation(p.a_b, vx.chord, vx.n_i))
-        } else {
-            (tau_s, tau_b)
-        };
+        let (ts, tb) = attenuated(p, vx, tau_s, tau_b);
         let (start, count) = vx.lights;
         if count > 0 {
             let slot = match (vx.kind, vx.family) {
@@ -199,16 +207,7 @@ pub fn shade_path_gradient(
                 out[k] += thr[k] * (ts * lift(spec[k], map, *used) + tb * lift(body[k], map, *used));
             }
         }
-        if let Some((l, pdf)) = vx.refr {
-            let (alpha, eta, col) = match vx.kind {
-                VertexKind::X => (p.alpha, p.eta, p.t_s),
-                VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
-            };
-            let w = transmit_cos(vx.v, l, alpha, eta) * (1.0 / pdf);
-            for k in 0..3 {
-                thr[k] *= col[k] * w * vx.rr;
-            }
-        } else {
+        if !refract(p, vx, &mut thr) {
             break;
         }
         tau_s = ts;
