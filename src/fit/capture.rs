@@ -116,13 +116,10 @@ impl CaptureEstimate {
     }
 }
 
-/// Median of `v` (`NaN` for none).
-fn median(mut v: Vec<f32>) -> f32 {
-    if v.is_empty() {
-        return f32::NAN;
-    }
-    v.sort_by(f32::total_cmp);
-    v[v.len() / 2]
+/// Median of `v` (`NaN` for none): the evaluation's nearest-rank quantile at ½, which for `n`
+/// values is the sorted `v[n / 2]`.
+fn median(v: Vec<f32>) -> f32 {
+    super::report::quantile(&v, 0.5)
 }
 
 /// Positions `phase + k·pitch` inside `[margin, extent − margin)`.
@@ -237,6 +234,7 @@ mod tests {
         assert_eq!(window_mean(&g, 2.0, 2.0, 1), 1.0);
         assert_eq!(window_mean(&g, 0.0, 0.0, 1), 0.0);
         assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), 3.0, "upper median, v[n / 2]");
         assert!(median(Vec::new()).is_nan());
     }
 
