@@ -218,6 +218,19 @@ pub fn error_map(a: &Image, b: &Image) -> Image {
     Image::new(a.width, a.height, data)
 }
 
+/// `img` scaled to `height` pixels high, keeping its aspect (box resampling): a contact-sheet tile.
+pub fn sheet_tile(img: &Image, height: u32) -> Image {
+    let w = ((img.width as u64 * height as u64) / img.height.max(1) as u64).clamp(1, 4096) as u32;
+    crate::math::resample::resample(img, w, height)
+}
+
+/// A contact-sheet row `a | b | error` ([`error_map`], as in `compare.png`), each [`sheet_tile`]d
+/// to `height` pixels; `a` and `b` have the same size.
+pub fn sheet_row(a: &Image, b: &Image, height: u32) -> Image {
+    let err = error_map(a, b);
+    Image::hstack(&[&sheet_tile(a, height), &sheet_tile(b, height), &sheet_tile(&err, height)], 2)
+}
+
 /// `compare.png`: target | fit | error (×4), upscaled, with the PSNR written on it.
 pub fn write_compare(res: &FitResult, path: &Path) -> Result<()> {
     register_font();

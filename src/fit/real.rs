@@ -13,7 +13,7 @@
 //! a quote).
 
 use super::capture::{estimate_capture, CaptureEstimate};
-use super::output::{photo_scores, registered_render, write_fit_outputs, PhotoScores};
+use super::output::{photo_scores, registered_render, sheet_row, sheet_tile, write_fit_outputs, PhotoScores};
 use super::report::quantile;
 use super::{fit_prepared, FitOptions};
 use crate::image_io::Image;
@@ -216,18 +216,6 @@ impl RealReport {
     }
 }
 
-/// `img` scaled to [`SHEET_ROW_H`] pixels high (box resampling).
-fn sheet_tile(img: &Image) -> Image {
-    let w = ((img.width as u64 * SHEET_ROW_H as u64) / img.height.max(1) as u64).clamp(1, 4096) as u32;
-    crate::math::resample::resample(img, w, SHEET_ROW_H)
-}
-
-/// `photo | fit | 4·|photo − fit|` (sRGB error), each [`SHEET_ROW_H`] pixels high.
-fn sheet_row(photo: &Image, fit: &Image) -> Image {
-    let err = super::output::error_map(photo, fit);
-    Image::hstack(&[&sheet_tile(photo), &sheet_tile(fit), &sheet_tile(&err)], 2)
-}
-
 /// Path of a photo's outputs under `save`: its path in the folder without the extension.
 fn save_dir(save: &Path, rel: &str) -> PathBuf {
     save.join(Path::new(rel).with_extension(""))
@@ -277,7 +265,7 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
             case.error = Some(e.to_string());
             if let Some(ov) = diagnostic_overlay(&rgb, &PrepOptions::default()) {
                 let ov = Image::from_rgb32f(&ov);
-                case.row = Some(Image::hstack(&[&sheet_tile(&input), &sheet_tile(&ov)], 2));
+                case.row = Some(Image::hstack(&[&sheet_tile(&input, SHEET_ROW_H), &sheet_tile(&ov, SHEET_ROW_H)], 2));
                 if let Some(s) = &opts.save {
                     let d = save_dir(s, &label.path);
                     if std::fs::create_dir_all(&d).is_ok() {
@@ -313,7 +301,7 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
             }
             if let Some(reg) = registered.or_else(|| registered_render(&res, (input.width, input.height), threads)) {
                 case.photo = Some(photo_scores(&reg, &input));
-                case.row = Some(sheet_row(&input, &reg));
+                case.row = Some(sheet_row(&input, &reg, SHEET_ROW_H));
             }
         }
         Err(e) => {
@@ -414,7 +402,7 @@ mod tests {
         let mut rep = RealReport { cases: Vec::new() };
         for w in [40, 90] {
             let photo = Image::filled(w, 30, [0.5; 3]);
-            let row = sheet_row(&photo, &photo);
+            let row = sheet_row(&photo, &photo, SHEET_ROW_H);
             assert_eq!(row.height, SHEET_ROW_H);
             rep.cases.push(RealCase {
                 path: "p".into(),

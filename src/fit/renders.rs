@@ -13,7 +13,7 @@
 //! the bottom weft of the image (its camera looks down with +y up), so the truth is the renderer's
 //! matrix inverted with its rows reversed.
 
-use super::output::write_fit_outputs;
+use super::output::{sheet_row, write_fit_outputs};
 use super::report::quantile;
 use super::target::yarn_mean;
 use super::{fit, FitOptions};
@@ -49,7 +49,7 @@ pub struct RenderCase {
     pub secs: f64,
     /// Why the fit failed.
     pub error: Option<String>,
-    /// Contact-sheet row: the crop the fit matched | the fit | 4× the absolute error.
+    /// Contact-sheet row: the crop the fit matched | the fit | 4× the sRGB error (as in `compare.png`).
     pub row: Option<Image>,
 }
 
@@ -167,18 +167,8 @@ fn colour_error(input: &Image, labels: &Image, res: &super::FitResult) -> Option
     Some(worst)
 }
 
-/// `target | fit | 4·|target − fit|`, each scaled to 128 px high.
-pub fn sheet_row(target: &Image, fit: &Image) -> Image {
-    let h = 128;
-    let w = (target.width * h / target.height.max(1)).max(1);
-    let (t, f) = (crate::math::resample::resample(target, w, h), crate::math::resample::resample(fit, w, h));
-    let err = Image::new(
-        w,
-        h,
-        t.data.iter().zip(&f.data).map(|(a, b)| [0, 1, 2].map(|k| (4.0 * (a[k] - b[k]).abs()).min(1.0))).collect(),
-    );
-    Image::hstack(&[&t, &f, &err], 2)
-}
+/// Height of a contact-sheet row, pixels.
+const SHEET_ROW_H: u32 = 128;
 
 /// Fit and score one image of the folder.
 fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) -> Result<RenderCase> {
@@ -213,7 +203,7 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
             case.exact = res.params.cloth.pattern.equivalent(&truth);
             case.crop_psnr_db = res.psnr_db;
             case.colour_err = labels.as_ref().and_then(|l| colour_error(&input, l, &res));
-            case.row = Some(sheet_row(&res.target, &res.render));
+            case.row = Some(sheet_row(&res.target, &res.render, SHEET_ROW_H));
             if let Some(s) = save {
                 write_fit_outputs(&res, &s.join(name), true, opts.control.threads)?;
             }
