@@ -28,17 +28,7 @@ import sys
 
 import numpy as np
 
-
-def min_repeat(p):
-    """Smallest (r, c) block with which `p` repeats (r | rows, c | cols)."""
-    rows, cols = p.shape
-    for r in range(1, rows + 1):
-        if rows % r == 0 and np.array_equal(p, np.tile(p[:r], (rows // r, 1))):
-            break
-    for c in range(1, cols + 1):
-        if cols % c == 0 and np.array_equal(p, np.tile(p[:, :c], (1, cols // c))):
-            break
-    return p[:r, :c]
+from make_set import min_repeat  # the set's own reduction (make_set imports mitsuba only when rendering)
 
 
 def shift_distance(a, b):

@@ -720,12 +720,17 @@ pub fn run_eval(args: &EvalArgs) -> Result<()> {
             case.secs
         ),
     })?;
-    let md = rep.markdown();
+    print_report(&rep.markdown(), &rep.summary_line(), args.markdown.as_deref())
+}
+
+/// The end of every `woven eval`: the markdown table, appended to `markdown` when given, then
+/// the summary line, last.
+fn print_report(md: &str, summary: &str, markdown: Option<&Path>) -> Result<()> {
     println!("\n{md}");
-    if let Some(p) = &args.markdown {
-        append_markdown(p, &md)?;
+    if let Some(p) = markdown {
+        append_markdown(p, md)?;
     }
-    println!("{}", rep.summary_line());
+    println!("{summary}");
     Ok(())
 }
 
@@ -761,13 +766,7 @@ fn run_eval_renders(dir: &Path, args: &EvalArgs) -> Result<()> {
     if let (Some(save), Some(sheet)) = (&args.save, rep.sheet()) {
         sheet.save_png(&save.join("sheet.png"))?;
     }
-    let md = rep.markdown();
-    println!("\n{md}");
-    if let Some(p) = &args.markdown {
-        append_markdown(p, &md)?;
-    }
-    println!("{}", rep.summary_line());
-    Ok(())
+    print_report(&rep.markdown(), &rep.summary_line(), args.markdown.as_deref())
 }
 
 /// `woven eval --real DIR`: fit each photo of `DIR/labels.csv` as a user would and score it (see
@@ -808,13 +807,7 @@ fn run_eval_real(dir: &Path, args: &EvalArgs) -> Result<()> {
             );
         }
     }
-    let md = rep.markdown();
-    println!("\n{md}");
-    if let Some(p) = &args.markdown {
-        append_markdown(p, &md)?;
-    }
-    println!("{}", rep.summary_line());
-    Ok(())
+    print_report(&rep.markdown(), &rep.summary_line(), args.markdown.as_deref())
 }
 
 #[cfg(test)]

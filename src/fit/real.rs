@@ -129,6 +129,22 @@ pub struct RealCase {
 }
 
 impl RealCase {
+    /// A case of photo `path` labelled `label`, before anything is found.
+    fn new(path: String, label: WeaveClass) -> Self {
+        RealCase {
+            path,
+            label,
+            class: None,
+            pattern: "-".into(),
+            capture: None,
+            photo: None,
+            crop_psnr_db: None,
+            secs: 0.0,
+            error: None,
+            row: None,
+        }
+    }
+
     /// Whether the class found is the label's.
     pub fn class_right(&self) -> bool {
         self.class == Some(self.label)
@@ -223,18 +239,7 @@ fn save_dir(save: &Path, rel: &str) -> PathBuf {
 
 /// Fit and score one photo.
 fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
-    let mut case = RealCase {
-        path: label.path.clone(),
-        label: label.class,
-        class: None,
-        pattern: "-".into(),
-        capture: None,
-        photo: None,
-        crop_psnr_db: None,
-        secs: 0.0,
-        error: None,
-        row: None,
-    };
+    let mut case = RealCase::new(label.path.clone(), label.class);
     let t = Instant::now();
     let input = match Image::load(&dir.join(&label.path), super::MIN_INPUT_SIDE)
         .map_err(anyhow::Error::from)
@@ -404,18 +409,7 @@ mod tests {
             let photo = Image::filled(w, 30, [0.5; 3]);
             let row = sheet_row(&photo, &photo, SHEET_ROW_H);
             assert_eq!(row.height, SHEET_ROW_H);
-            rep.cases.push(RealCase {
-                path: "p".into(),
-                label: WeaveClass::Plain,
-                class: None,
-                pattern: "-".into(),
-                capture: None,
-                photo: None,
-                crop_psnr_db: None,
-                secs: 0.0,
-                error: None,
-                row: Some(row),
-            });
+            rep.cases.push(RealCase { row: Some(row), ..RealCase::new("p".into(), WeaveClass::Plain) });
         }
         let sheet = rep.sheet().unwrap();
         assert_eq!(sheet.height, 2 * SHEET_ROW_H + 4);
