@@ -10,7 +10,8 @@
 //! 3. Gaussian blur with σ = pitch/16 ([`regularize`]).
 //! 4. [`period`] — superposed distance matching functions of all rows / columns → the
 //!    minimum pattern size in pixels (§4.3, \[Asha12\]).
-//! 5. Kernel PCA on period-sized tiles → the regularized ("ideal") image ([`regularize`], §4.2).
+//! 5. Mean of the repeats, each aligned at sub-pixel on the period lattice, outlier repeats left
+//!    out → the regularized ("ideal") image ([`regularize`], §4.2; replaces the paper's KPCA).
 //! 6. [`grid`] — integral projections of the regularized image → yarn boundaries, pitch and
 //!    phase; `n_a = round(period_x / pitch_x)`, `n_e = round(period_y / pitch_y)` (§4.4).
 //!
@@ -29,7 +30,7 @@ use image::Rgb32FImage;
 use serde::Serialize;
 
 pub use crate::math::linalg::Homography;
-pub use regularize::KpcaParams;
+pub use regularize::RepeatParams;
 
 use grid::{analyze_axis, AxisGrid};
 use image_ops::{blur_gray, blur_rgb, Gray};
@@ -125,10 +126,10 @@ pub struct PrepOptions {
     pub rectify: bool,
     /// Also remove slight perspective (needs `rectify`).
     pub perspective: bool,
-    /// Run Kernel PCA (otherwise the regularized image is just the blurred one).
+    /// Average the aligned repeats (otherwise the regularized image is just the blurred one).
     pub regularize: bool,
-    /// Kernel PCA settings.
-    pub kpca: KpcaParams,
+    /// Settings of the mean of the aligned repeats ([`regularize::mean_of_repeats`]).
+    pub repeats: RepeatParams,
     /// Minimum normalised autocorrelation at the pitch of both integral projections; below it the
     /// image is rejected with [`PrepError::NoStructure`].
     pub min_structure: f32,
@@ -155,7 +156,7 @@ impl Default for PrepOptions {
             rectify: true,
             perspective: true,
             regularize: true,
-            kpca: KpcaParams::default(),
+            repeats: RepeatParams::default(),
             min_structure: 0.35,
             min_period_corr: 0.7,
             min_single_repeat_structure: 0.8,
@@ -184,7 +185,8 @@ pub struct Prepared {
     /// Rotated, perspective-corrected and cropped input.
     #[serde(skip)]
     pub rectified: Rgb32FImage,
-    /// Blurred + Kernel-PCA regularized version of `rectified` (same size).
+    /// Blurred `rectified` replaced by the mean of its aligned repeats (same size; see
+    /// [`regularize`]).
     #[serde(skip)]
     pub regularized: Rgb32FImage,
     /// Size of `rectified`.
@@ -341,9 +343,9 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
             min_grid: opts.min_single_repeat_structure,
         });
     }
-    // 5. Kernel PCA.
+    // 5. Mean of the aligned repeats.
     let regularized = if opts.regularize {
-        regularize::kpca_tiles(&blurred, per_x.period, per_y.period, &opts.kpca)
+        regularize::mean_of_repeats(&blurred, [ax0.pitch, ay0.pitch], per_x.period, per_y.period, &opts.repeats)
     } else {
         blurred
     };
@@ -712,7 +714,7 @@ mod tests {
         let noisy = add_noise(&blurred, 0.12, 7);
         let base = psnr(&noisy, &clean);
         // Direct call with the known pitch and period.
-        let reg = regularize::regularize(&noisy, 12.0, 48.0, 48.0, &KpcaParams::default());
+        let reg = regularize::regularize(&noisy, [12.0, 12.0], 48.0, 48.0, &RepeatParams::default());
         let gain = psnr(&reg, &clean) - base;
         assert!(gain >= 3.0, "direct: input {base:.2} dB, gain {gain:.2} dB");
         // Whole chain without rectification (same pixel frame).
@@ -720,7 +722,7 @@ mod tests {
         let pr = prepare(&noisy, &opts).expect("prepare");
         let gain = psnr(&pr.regularized, &clean) - base;
         assert!(gain >= 3.0, "prepare: gain {gain:.2} dB; {}", pr.to_json());
-        // The gain is not just the blur: KPCA removes most of the noise (measured against the
+        // The gain is not just the blur: the mean of the repeats removes most of the noise (measured against the
         // blurred clean image, which is all a denoiser can hope to recover).
         let blur_only = blur_rgb(&noisy, 12.0 / 16.0);
         let (p_noisy, p_blur, p_kpca) =
@@ -784,7 +786,7 @@ mod tests {
         assert!(v.get("rectified").is_none());
     }
 
-    /// Timing on a 1024² synthetic plain weave at pitch 12 (worst case for KPCA: ~1700 tiles).
+    /// Timing on a 1024² synthetic plain weave at pitch 12 (worst case for the repeat mean: ~1700 repeats).
     /// Run with `cargo test --release -- --ignored timing --nocapture`.
     #[test]
     #[ignore]

@@ -1,312 +1,488 @@
-//! Regularization (paper §4.2): Gaussian blur, then Kernel PCA (Schölkopf, Smola & Müller 1997,
-//! \[Schoelkopf97\]) to keep the dominant repeated structure of the weave.
+//! Regularization (paper §4.2): the prepared image is the **mean of the aligned repeats** of the
+//! (slightly blurred) rectified photo, each repeat resampled at sub-pixel on the period lattice;
+//! repeats far from the median repeat are left out of the mean.
 //!
-//! **Blur.** σ = pitch / 16 px (the paper: a yarn cross-section holds 10–20 fibres).
+//! **Blur.** σ = pitch / 16 px (the paper: a yarn cross-section holds 10–20 fibres; the fit blurs
+//! its renders by the same σ).
 //!
-//! **Kernel PCA formulation (chosen for speed).** The samples are the *repeats* of the weave: the
-//! image is cut into period-sized tiles on the lattice `(round(i·Pₓ), round(j·P_y))` (fractional
-//! periods are rounded per tile, so the misalignment never exceeds half a pixel and does not
-//! accumulate). Each tile is a vector; the kernel uses a sub-sampled copy (every `s`-th pixel so
-//! that ≤ 512 values remain) to keep distances cheap.
+//! **Why not the Kernel PCA pre-image of the paper** (\[Wu25\] §4.2, after \[Schoelkopf97\]). The
+//! pre-image (Mika's fixed point) was a kernel-weighted mean of integer-rounded tiles with an RBF
+//! width set by the median distance: on real photos the weights spread over most tiles, and every
+//! tile that sat a pixel or two off the nominal lattice (waviness, a period a fraction of a pixel
+//! off, accumulated over ten repeats) smeared the holes and crossings into a grey blur, which the
+//! fit then matched with maximal yarn radii and no holes (issue 14). What identifies the cloth is
+//! the sharp repeat; what must be removed is the noise and fibre texture that differ between
+//! repeats. Averaging repeats that are first *registered* to each other keeps the former and
+//! removes the latter (noise σ falls as 1/√N for N repeats).
 //!
-//! * Training set: up to `max_train` tiles, evenly spread over the lattice.
-//! * RBF kernel `k(a, b) = exp(−‖a − b‖² / c)` with `c` = median squared distance between training
-//!   tiles (the usual median heuristic: irregular tiles are far from the bulk, typical ones near).
-//! * Centred kernel matrix, leading `q` (default 4) eigenpairs by subspace (block power)
-//!   iteration with a Rayleigh–Ritz step (Jacobi on the q×q matrix); coefficient vectors scaled so
-//!   that the feature space eigenvectors have unit norm. Only components holding ≥ 10% of the
-//!   kernel variance (trace) are kept: with pure noise between repeats all eigenvalues are ~1/m of
-//!   the trace and none is kept, so every tile goes to the kernel-weighted mean of the repeats.
-//! * Every tile is projected on the `q` components (`β_k = Σ_i α_i^k k̃(x, x_i)`) and its
-//!   projection is written as `Σ_i γ_i φ(x_i)` (Kwok & Tsang 2004, incl. the centring term).
-//! * Pre-image by the fixed-point iteration of Mika et al. (1999):
-//!   `z ← Σ_i w_i x_i / Σ_i w_i`, `w_i = γ_i k(z, x_i)`, started at the tile itself; negative
-//!   weights are clipped to 0 (a common stabilisation). The final weights are applied to the
-//!   full-resolution training tiles: the regularized tile is a weighted mean of similar repeats.
+//! **Lattice.** Per axis, repeat starts `i·P` (`P` the fractional DMF period) for every copy
+//! that overlaps the image: the partial copies at the edges add their samples inside the image
+//! (on a photo of five repeats they are a third of the data). An axis without a repeat (the DMF
+//! gives the whole extent) is not tiled: the output copies it unchanged along that axis.
 //!
-//! The output image takes every pixel from its lattice tile's pre-image; pixels past the last full
-//! tile (right/bottom strips narrower than a period) take the pixel one period back, i.e. the
-//! regularized image is the ideal periodic weave. With fewer than 6 tiles (e.g. a single-repeat
-//! image) KPCA has nothing to compare and the blurred image is returned unchanged.
+//! **Alignment.** Each repeat that lies inside the image with a margin is registered to the reference (the per-pixel median of the repeats
+//! at their nominal origins, grey): the integer shift within `±max_shift·pitch` (at most
+//! [`MAX_SHIFT_PX`]) of least squared difference, refined by a parabola through its neighbours.
+//! The median shift over the repeats is removed, so that the mean stays registered to the photo
+//! (the crop and the registered `fit.png` rely on it). A shift under half a pitch cannot jump to a
+//! neighbouring yarn. A partial copy at an edge takes the shift of the nearest full one.
+//!
+//! **Outliers.** The distance of every aligned repeat to the per-pixel median of the aligned
+//! repeats; a repeat beyond `median + k·1.4826·MAD` of those distances (a fold, a stain, a
+//! missing yarn, the vignetted corner) is left out of the mean. With pure noise all distances
+//! are alike and every repeat is kept.
+//!
+//! **Output.** The mean repeat `M` is sampled at `ceil(P) + 1` points per axis; output pixel `x`
+//! takes `M(x mod P)` by bicubic interpolation (colour samples are bicubic throughout, the
+//! alignment's grey samples bilinear): the prepared image is the ideal periodic
+//! weave, registered to the rectified photo. Neither axis tiled: the blurred image unchanged.
 
 use image::Rgb32FImage;
 use rayon::prelude::*;
 
-use super::image_ops::blur_rgb;
-use crate::math::linalg::sym_eigen;
+use super::image_ops::{blur_rgb, parabola_offset, Gray};
 
-/// Kernel PCA settings.
+/// Largest alignment shift searched, pixels (cost grows with its square).
+pub const MAX_SHIFT_PX: i32 = 8;
+
+/// Settings of the repeat averaging.
 #[derive(Clone, Copy, Debug)]
-pub struct KpcaParams {
-    /// Number of kernel principal components kept.
-    pub components: usize,
-    /// Maximum number of training tiles.
-    pub max_train: usize,
-    /// Pre-image fixed-point iterations.
-    pub iters: usize,
-    /// A component is kept only if its eigenvalue is at least this share of the trace.
-    pub min_share: f64,
+pub struct RepeatParams {
+    /// Largest alignment shift of a repeat, as a fraction of the yarn pitch (below 0.5 so that a
+    /// repeat cannot lock onto the neighbouring yarn).
+    pub max_shift: f32,
+    /// A repeat is an outlier beyond `median + outlier_sigmas · 1.4826 · MAD` of the distances to
+    /// the median repeat.
+    pub outlier_sigmas: f32,
+    /// Most repeats used for the per-pixel median (evenly spread over the lattice).
+    pub max_reference: usize,
 }
 
-impl Default for KpcaParams {
+impl Default for RepeatParams {
     fn default() -> Self {
-        Self { components: 4, max_train: 160, iters: 3, min_share: 0.1 }
+        Self { max_shift: 0.25, outlier_sigmas: 3.0, max_reference: 64 }
     }
 }
 
-/// Blur (σ = pitch/16) followed by KPCA on period tiles. See module docs.
-pub fn regularize(img: &Rgb32FImage, pitch: f32, period_x: f32, period_y: f32, params: &KpcaParams) -> Rgb32FImage {
-    let blurred = blur_rgb(img, pitch / 16.0);
-    kpca_tiles(&blurred, period_x, period_y, params)
+/// Blur (σ = mean pitch/16) followed by the mean of the aligned repeats. See module docs.
+pub fn regularize(
+    img: &Rgb32FImage,
+    pitch: [f32; 2],
+    period_x: f32,
+    period_y: f32,
+    params: &RepeatParams,
+) -> Rgb32FImage {
+    let blurred = blur_rgb(img, 0.5 * (pitch[0] + pitch[1]) / 16.0);
+    mean_of_repeats(&blurred, pitch, period_x, period_y, params)
 }
 
-/// Squared Euclidean distance.
+/// Repeat lattice along one axis.
+struct AxisLattice {
+    /// Period (the whole extent for an untiled axis).
+    period: f64,
+    /// Nominal starts of the repeats, partial ones at the image edges included.
+    starts: Vec<f64>,
+    /// Whether the repeat at each start lies inside the image with the shift margin.
+    full: Vec<bool>,
+    /// Samples of the mean repeat along this axis.
+    len: usize,
+    /// Samples before `u = 0` (1 on a tiled axis, so that the cubic lookup near `u = 0` reads the
+    /// end of the previous period instead of a clamped edge).
+    pad: usize,
+    /// Largest shift searched (0 for an untiled axis).
+    r: i32,
+    /// Whether the axis is tiled.
+    tiled: bool,
+}
+
+fn axis_lattice(n: usize, period: f32, pitch: f32, max_shift: f32) -> AxisLattice {
+    let p = period as f64;
+    let r = ((max_shift * pitch).round() as i32).clamp(1, MAX_SHIFT_PX);
+    // u = −1 … ceil(P) + 1: the cubic taps of every u in [0, P).
+    let len = p.ceil() as usize + 3;
+    // Repeats anchored at 0, every copy that overlaps the image (partial copies at the edges
+    // add their valid samples too: on a 5-repeat image they are a third of the data).
+    let i0 = -((len as f64 / p).ceil() as i64);
+    let starts: Vec<f64> = (i0..).map(|i| i as f64 * p).take_while(|&s| s < n as f64 - 1.0).collect();
+    // Margin r + 1 each side: a shifted window (plus the bilinear neighbour) stays inside.
+    let full: Vec<bool> =
+        starts.iter().map(|&s| s >= (r + 2) as f64 && s + (len + r as usize + 1) as f64 <= n as f64).collect();
+    // The DMF gives the whole extent as the period when it found no repeat; such an axis (or one
+    // too short for a single full repeat with its margin) is not tiled.
+    if p < 1.0 || p > 0.6 * n as f64 || !full.iter().any(|&f| f) {
+        return AxisLattice {
+            period: n as f64,
+            starts: vec![0.0],
+            full: vec![true],
+            len: n,
+            pad: 0,
+            r: 0,
+            tiled: false,
+        };
+    }
+    AxisLattice { period: p, starts, full, len, pad: 1, r, tiled: true }
+}
+
+/// Bilinear sample of channel `c` of an interleaved image, coordinates clamped to the image.
 #[inline]
-fn dist2(a: &[f32], b: &[f32]) -> f32 {
-    a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
+fn bilinear(data: &[f32], w: usize, h: usize, ch: usize, c: usize, x: f64, y: f64) -> f32 {
+    let x = x.clamp(0.0, (w - 1) as f64);
+    let y = y.clamp(0.0, (h - 1) as f64);
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+    let at = |xx: usize, yy: usize| data[(yy * w + xx) * ch + c];
+    let top = at(x0, y0) + fx * (at(x1, y0) - at(x0, y0));
+    let bot = at(x0, y1) + fx * (at(x1, y1) - at(x0, y1));
+    top + fy * (bot - top)
 }
 
-struct Lattice {
-    xs: Vec<usize>,
-    ys: Vec<usize>,
+/// Keys cubic convolution weights (a = −0.5, "Catmull–Rom") for the taps −1, 0, 1, 2 at fraction
+/// `t` ∈ [0, 1).
+#[inline]
+fn keys_weights(t: f32) -> [f32; 4] {
+    [
+        ((-0.5 * t + 1.0) * t - 0.5) * t,
+        (1.5 * t - 2.5) * t * t + 1.0,
+        ((-1.5 * t + 2.0) * t + 0.5) * t,
+        (0.5 * t - 0.5) * t * t,
+    ]
 }
 
-fn lattice(n: usize, p: f32) -> (usize, Vec<usize>) {
-    let t = (p.ceil() as usize).clamp(1, n);
-    let mut v = Vec::new();
-    let mut i = 0usize;
-    loop {
-        let s = (i as f32 * p).round() as usize;
-        if s + t > n {
-            break;
+/// Bicubic (Keys) sample of channel `c`, coordinates and taps clamped to the image. Used for the
+/// colour samples: bilinear interpolation at a fractional offset `f` is a low-pass of variance
+/// `f(1 − f)` px², and averaged over the repeats' offsets it blurred the holes as much as a
+/// half-pixel misregistration; the cubic kernel passes the yarn-scale detail nearly unchanged.
+#[inline]
+fn bicubic(data: &[f32], w: usize, h: usize, ch: usize, c: usize, x: f64, y: f64) -> f32 {
+    let x = x.clamp(0.0, (w - 1) as f64);
+    let y = y.clamp(0.0, (h - 1) as f64);
+    let (x0, y0) = (x.floor() as i64, y.floor() as i64);
+    let wx = keys_weights((x - x0 as f64) as f32);
+    let wy = keys_weights((y - y0 as f64) as f32);
+    let mut acc = 0.0f32;
+    for (j, wyj) in wy.iter().enumerate() {
+        let yy = (y0 + j as i64 - 1).clamp(0, h as i64 - 1) as usize;
+        let mut row = 0.0f32;
+        for (i, wxi) in wx.iter().enumerate() {
+            let xx = (x0 + i as i64 - 1).clamp(0, w as i64 - 1) as usize;
+            row += wxi * data[(yy * w + xx) * ch + c];
         }
-        v.push(s);
-        i += 1;
+        acc += wyj * row;
     }
-    if v.is_empty() {
-        v.push(0);
-    }
-    (t, v)
+    acc
 }
 
-/// KPCA regularization of an (already blurred) image on tiles of the given period.
-pub fn kpca_tiles(img: &Rgb32FImage, period_x: f32, period_y: f32, params: &KpcaParams) -> Rgb32FImage {
+/// Whether a sample coordinate lies inside an axis of `n` pixels (half a pixel of slack for the
+/// sub-pixel shifts of the edge copies).
+#[inline]
+fn inside(x: f64, n: usize) -> bool {
+    x >= -0.5 && x <= n as f64 - 0.5
+}
+
+/// Per-element median of equally long vectors, NaN (outside the image) ignored; NaN when no
+/// vector has a value there.
+fn median_of(vs: &[&Vec<f32>]) -> Vec<f32> {
+    let n = vs[0].len();
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let mut col: Vec<f32> = vs.iter().map(|v| v[i]).filter(|v| !v.is_nan()).collect();
+            if col.is_empty() {
+                return f32::NAN;
+            }
+            let mid = col.len() / 2;
+            *col.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+        })
+        .collect()
+}
+
+/// Median of a list (upper median for an even count).
+fn median(mut v: Vec<f64>) -> f64 {
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+}
+
+/// Mean of the aligned repeats of an (already blurred) image; see the module docs. `pitch` is
+/// the yarn pitch along x and y (it bounds the alignment shift), the periods are the DMF's
+/// (the whole extent on an axis without a repeat).
+pub fn mean_of_repeats(
+    img: &Rgb32FImage,
+    pitch: [f32; 2],
+    period_x: f32,
+    period_y: f32,
+    params: &RepeatParams,
+) -> Rgb32FImage {
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let (tw, xs) = lattice(w, period_x.max(1.0));
-    let (th, ys) = lattice(h, period_y.max(1.0));
-    let lat = Lattice { xs, ys };
-    let n_tiles = lat.xs.len() * lat.ys.len();
-    if n_tiles < 6 {
+    let lx = axis_lattice(w, period_x, pitch[0], params.max_shift);
+    let ly = axis_lattice(h, period_y, pitch[1], params.max_shift);
+    if !lx.tiled && !ly.tiled {
         return img.clone();
     }
+    let nx = lx.starts.len();
+    let n_tiles = nx * ly.starts.len();
     let src = img.as_raw();
-    // Feature sub-sampling stride so that features have ≤ 512 values.
-    let fs = (((tw * th * 3) as f64 / 512.0).sqrt().ceil() as usize).max(1);
-    let fxs: Vec<usize> = (0..tw).step_by(fs).collect();
-    let fys: Vec<usize> = (0..th).step_by(fs).collect();
-    let origin = |t: usize| (lat.xs[t % lat.xs.len()], lat.ys[t / lat.xs.len()]);
-    let feature = |t: usize| -> Vec<f32> {
-        let (ox, oy) = origin(t);
-        let mut f = Vec::with_capacity(fxs.len() * fys.len() * 3);
+    let grey = Gray::from_rgb(img);
+    // Image position of sample 0 of each copy (the pad sample before u = 0).
+    let start = |t: usize| (lx.starts[t % nx] - lx.pad as f64, ly.starts[t / nx] - ly.pad as f64);
+    let full = |t: usize| lx.full[t % nx] && ly.full[t / nx];
+    // Alignment features: the grey repeat sub-sampled to ≤ ~4096 values, NaN outside the image.
+    let stride = (((lx.len * ly.len) as f64 / 4096.0).sqrt().ceil() as usize).max(1);
+    let fxs: Vec<usize> = (0..lx.len).step_by(stride).collect();
+    let fys: Vec<usize> = (0..ly.len).step_by(stride).collect();
+    let feature = |ox: f64, oy: f64| -> Vec<f32> {
+        let mut f = Vec::with_capacity(fxs.len() * fys.len());
         for &y in &fys {
             for &x in &fxs {
-                let i = ((oy + y) * w + ox + x) * 3;
-                f.extend_from_slice(&src[i..i + 3]);
+                let (sx, sy) = (ox + x as f64, oy + y as f64);
+                f.push(if inside(sx, w) && inside(sy, h) {
+                    bilinear(&grey.data, w, h, 1, 0, sx, sy)
+                } else {
+                    f32::NAN
+                });
             }
         }
         f
     };
-    let full_tile = |t: usize| -> Vec<f32> {
-        let (ox, oy) = origin(t);
-        let mut f = Vec::with_capacity(tw * th * 3);
-        for y in 0..th {
-            let i = ((oy + y) * w + ox) * 3;
-            f.extend_from_slice(&src[i..i + tw * 3]);
-        }
-        f
-    };
-    let feats: Vec<Vec<f32>> = (0..n_tiles).into_par_iter().map(feature).collect();
-    // Training subset, evenly spread; memory-bounded for large tiles.
-    let cap = (8_000_000 / (tw * th * 3)).max(6);
-    let m = params.max_train.min(n_tiles).min(cap);
-    let train: Vec<usize> = (0..m).map(|i| i * n_tiles / m).collect();
-    let train_full: Vec<Vec<f32>> = train.par_iter().map(|&t| full_tile(t)).collect();
-    // Kernel matrix and width (median heuristic).
-    let d2: Vec<f32> = (0..m * m)
-        .into_par_iter()
-        .map(|k| {
-            let (i, j) = (k / m, k % m);
-            if i < j {
-                dist2(&feats[train[i]], &feats[train[j]])
-            } else {
-                0.0
-            }
+    let full_tiles: Vec<usize> = (0..n_tiles).filter(|&t| full(t)).collect();
+    let n_ref = params.max_reference.max(2).min(full_tiles.len());
+    let ref_tiles: Vec<usize> = (0..n_ref).map(|i| full_tiles[i * full_tiles.len() / n_ref]).collect();
+    let nominal: Vec<Vec<f32>> = ref_tiles
+        .par_iter()
+        .map(|&t| {
+            let (ox, oy) = start(t);
+            feature(ox, oy)
         })
         .collect();
-    let mut off: Vec<f32> = (0..m).flat_map(|i| (i + 1..m).map(move |j| (i, j))).map(|(i, j)| d2[i * m + j]).collect();
-    let mid = off.len() / 2;
-    off.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-    let c = off[mid] as f64;
-    if c <= 1e-12 {
-        return img.clone(); // all repeats identical already
-    }
-    let mut k = vec![0.0f64; m * m];
-    for i in 0..m {
-        k[i * m + i] = 1.0;
-        for j in i + 1..m {
-            let v = (-(d2[i * m + j] as f64) / c).exp();
-            k[i * m + j] = v;
-            k[j * m + i] = v;
-        }
-    }
-    let col_mean: Vec<f64> = (0..m).map(|j| (0..m).map(|i| k[i * m + j]).sum::<f64>() / m as f64).collect();
-    let all_mean = col_mean.iter().sum::<f64>() / m as f64;
-    let mut kc = k.clone();
-    for i in 0..m {
-        for j in 0..m {
-            kc[i * m + j] = k[i * m + j] - col_mean[i] - col_mean[j] + all_mean;
-        }
-    }
-    // Keep only components that carry a real share (≥ 10%) of the kernel variance: with
-    // i.i.d. noise every eigenvalue is ~1/m of the trace and projecting on noise directions would
-    // re-inject noise; structured variation across repeats (e.g. uneven light) passes the test.
-    let trace: f64 = (0..m).map(|i| kc[i * m + i]).sum();
-    let alphas: Vec<Vec<f64>> = top_eigen(&kc, m, params.components.min(m - 1).max(1))
-        .into_iter()
-        .filter(|(l, _)| *l >= params.min_share * trace)
-        .map(|(_, a)| a)
-        .collect();
-    // Project every tile, pre-image, reconstruct.
-    let tiles: Vec<Vec<f32>> = (0..n_tiles)
-        .into_par_iter()
-        .map(|t| {
-            let x = &feats[t];
-            let kx: Vec<f64> = train.iter().map(|&i| (-(dist2(x, &feats[i]) as f64) / c).exp()).collect();
-            let kx_mean = kx.iter().sum::<f64>() / m as f64;
-            let kxc: Vec<f64> = (0..m).map(|i| kx[i] - kx_mean - col_mean[i] + all_mean).collect();
-            let mut gamma = vec![0.0f64; m];
-            for a in &alphas {
-                let beta: f64 = a.iter().zip(&kxc).map(|(u, v)| u * v).sum();
-                gamma.iter_mut().zip(a).for_each(|(g, u)| *g += beta * u);
-            }
-            let gs: f64 = gamma.iter().sum();
-            gamma.iter_mut().for_each(|g| *g += (1.0 - gs) / m as f64);
-            // Mika fixed point, started at the tile itself.
-            let mut z = x.clone();
-            let mut wts = vec![0.0f64; m];
-            let mut ok = false;
-            for _ in 0..params.iters.max(1) {
-                let mut sw = 0.0;
-                for (i, &ti) in train.iter().enumerate() {
-                    let kv = (-(dist2(&z, &feats[ti]) as f64) / c).exp();
-                    wts[i] = (gamma[i] * kv).max(0.0);
-                    sw += wts[i];
+    let reference = median_of(&nominal.iter().collect::<Vec<_>>());
+    // Register every full repeat: integer search around the rounded start, parabolic refinement.
+    let full_shift: Vec<(f64, f64)> = full_tiles
+        .par_iter()
+        .map(|&t| {
+            let (sx, sy) = start(t);
+            let (bx, by) = (sx.round() as i64, sy.round() as i64);
+            let ssd = |dx: i32, dy: i32| -> f64 {
+                let (ox, oy) = (bx + dx as i64, by + dy as i64);
+                let mut s = 0.0f64;
+                let mut k = 0;
+                for &y in &fys {
+                    let yy = (oy + y as i64).clamp(0, h as i64 - 1) as usize;
+                    for &x in &fxs {
+                        let xx = (ox + x as i64).clamp(0, w as i64 - 1) as usize;
+                        let d = grey.data[yy * w + xx] - reference[k];
+                        s += (d * d) as f64;
+                        k += 1;
+                    }
                 }
-                if sw <= 1e-300 {
-                    break;
-                }
-                wts.iter_mut().for_each(|v| *v /= sw);
-                ok = true;
-                z.iter_mut().for_each(|v| *v = 0.0);
-                for (i, &ti) in train.iter().enumerate() {
-                    let wv = wts[i] as f32;
-                    if wv > 0.0 {
-                        z.iter_mut().zip(&feats[ti]).for_each(|(a, b)| *a += wv * b);
+                s
+            };
+            let (rx, ry) = (lx.r, ly.r);
+            let idx = |dx: i32, dy: i32| ((dy + ry) * (2 * rx + 1) + dx + rx) as usize;
+            let mut table = vec![f64::INFINITY; ((2 * rx + 1) * (2 * ry + 1)) as usize];
+            table[idx(0, 0)] = ssd(0, 0);
+            let mut best = (0i32, 0i32);
+            for dy in -ry..=ry {
+                for dx in -rx..=rx {
+                    let v = ssd(dx, dy);
+                    table[idx(dx, dy)] = v;
+                    // Ties (a direction without structure, e.g. stripes) keep the nominal start.
+                    if v < table[idx(best.0, best.1)] {
+                        best = (dx, dy);
                     }
                 }
             }
-            if !ok {
-                return full_tile(t);
-            }
-            let wmax = wts.iter().cloned().fold(0.0, f64::max);
-            let mut out = vec![0.0f32; tw * th * 3];
-            let mut sw = 0.0f32;
-            for (i, tile) in train_full.iter().enumerate() {
-                let wv = wts[i] as f32;
-                if (wts[i]) > 1e-4 * wmax {
-                    sw += wv;
-                    out.iter_mut().zip(tile).for_each(|(a, b)| *a += wv * b);
-                }
-            }
-            out.iter_mut().for_each(|v| *v /= sw);
-            out
+            let (dx, dy) = best;
+            let sub = |a: f64, b: f64, c: f64| parabola_offset(a, b, c);
+            let fx = if dx.abs() < rx {
+                sub(table[idx(dx - 1, dy)], table[idx(dx, dy)], table[idx(dx + 1, dy)])
+            } else {
+                0.0
+            };
+            let fy = if dy.abs() < ry {
+                sub(table[idx(dx, dy - 1)], table[idx(dx, dy)], table[idx(dx, dy + 1)])
+            } else {
+                0.0
+            };
+            (bx as f64 + dx as f64 + fx - sx, by as f64 + dy as f64 + fy - sy)
         })
         .collect();
-    // Assemble: every pixel from its lattice tile (one period back past the last full tile).
-    let px_round = (period_x.round() as usize).clamp(1, tw);
-    let py_round = (period_y.round() as usize).clamp(1, th);
-    let locate = |p: usize, starts: &[usize], t: usize, step: usize| -> (usize, usize) {
-        let i = match starts.binary_search(&p) {
-            Ok(i) => i,
-            Err(i) => i.saturating_sub(1),
-        };
-        let mut l = p - starts[i];
-        while l >= t {
-            l -= step;
+    // Remove the common shift: the mean repeat stays registered to the photo.
+    let mx = median(full_shift.iter().map(|s| s.0).collect());
+    let my = median(full_shift.iter().map(|s| s.1).collect());
+    // A partial copy at the edge takes the shift of the nearest full repeat on the lattice.
+    let shifts: Vec<(f64, f64)> = (0..n_tiles)
+        .map(|t| {
+            let (ix, iy) = ((t % nx) as i64, (t / nx) as i64);
+            let k = (0..full_tiles.len())
+                .min_by_key(|&k| {
+                    let u = full_tiles[k];
+                    let (jx, jy) = ((u % nx) as i64, (u / nx) as i64);
+                    (jx - ix).abs() + (jy - iy).abs()
+                })
+                .expect("a tiled axis has a full repeat");
+            (full_shift[k].0 - mx, full_shift[k].1 - my)
+        })
+        .collect();
+    let aligned = |t: usize| -> (f64, f64) {
+        let (sx, sy) = start(t);
+        (sx + shifts[t].0, sy + shifts[t].1)
+    };
+    // Outliers: mean squared distance of each aligned repeat (its samples inside the image) to
+    // the per-pixel median of the aligned full repeats.
+    let feats: Vec<Vec<f32>> = (0..n_tiles)
+        .into_par_iter()
+        .map(|t| {
+            let (ox, oy) = aligned(t);
+            feature(ox, oy)
+        })
+        .collect();
+    let keep: Vec<bool> = if full_tiles.len() >= 5 {
+        let median_rep = median_of(&ref_tiles.iter().map(|&t| &feats[t]).collect::<Vec<_>>());
+        let d: Vec<f64> = feats
+            .iter()
+            .map(|f| {
+                let (mut s, mut k) = (0.0f64, 0usize);
+                for (a, b) in f.iter().zip(&median_rep) {
+                    if !a.is_nan() && !b.is_nan() {
+                        s += ((a - b) * (a - b)) as f64;
+                        k += 1;
+                    }
+                }
+                // A sliver of a copy at the edge is too small to judge; it is left out.
+                if k * 4 < f.len() {
+                    f64::INFINITY
+                } else {
+                    s / k as f64
+                }
+            })
+            .collect();
+        let finite: Vec<f64> = d.iter().cloned().filter(|v| v.is_finite()).collect();
+        let dm = median(finite.clone());
+        let mad = median(finite.iter().map(|v| (v - dm).abs()).collect());
+        let limit = dm + params.outlier_sigmas as f64 * 1.4826 * mad;
+        d.iter().map(|&v| v <= limit).collect()
+    } else {
+        vec![true; n_tiles]
+    };
+    // Mean repeat, sampled at ceil(P) + 1 points per axis, over the copies that hold each sample.
+    let mut mean = vec![0.0f32; lx.len * ly.len * 3];
+    mean.par_chunks_mut(lx.len * 3).enumerate().for_each(|(v, row)| {
+        let mut count = vec![0u32; lx.len];
+        for t in (0..n_tiles).filter(|&t| keep[t]) {
+            let (ox, oy) = aligned(t);
+            let y = oy + v as f64;
+            if !inside(y, h) {
+                continue;
+            }
+            for (u, cnt) in count.iter_mut().enumerate() {
+                let x = ox + u as f64;
+                if inside(x, w) {
+                    for c in 0..3 {
+                        row[u * 3 + c] += bicubic(src, w, h, 3, c, x, y);
+                    }
+                    *cnt += 1;
+                }
+            }
         }
-        (i, l)
+        for (u, &cnt) in count.iter().enumerate() {
+            if cnt > 0 {
+                row[u * 3..u * 3 + 3].iter_mut().for_each(|x| *x /= cnt as f32);
+            } else {
+                // No kept copy holds this sample (outliers covered it): the nominal first full
+                // repeat gives it.
+                let (ox, oy) = start(full_tiles[0]);
+                for c in 0..3 {
+                    row[u * 3 + c] = bilinear(src, w, h, 3, c, ox + u as f64, oy + v as f64);
+                }
+            }
+        }
+    });
+    // Every output pixel from the mean repeat at its lattice coordinate.
+    let coord = |l: &AxisLattice, x: usize| -> f64 {
+        if l.tiled {
+            (x as f64).rem_euclid(l.period) + l.pad as f64
+        } else {
+            x as f64
+        }
     };
     let mut out = vec![0.0f32; w * h * 3];
     out.par_chunks_mut(w * 3).enumerate().for_each(|(y, row)| {
-        let (ty, ly) = locate(y, &lat.ys, th, py_round);
+        let v = coord(&ly, y);
         for x in 0..w {
-            let (tx, lx) = locate(x, &lat.xs, tw, px_round);
-            let tile = &tiles[ty * lat.xs.len() + tx];
-            let i = (ly * tw + lx) * 3;
-            row[x * 3..x * 3 + 3].copy_from_slice(&tile[i..i + 3]);
+            let u = coord(&lx, x);
+            for c in 0..3 {
+                // The cubic kernel overshoots a little at sharp edges; light is not negative.
+                row[x * 3 + c] = bicubic(&mean, lx.len, ly.len, 3, c, u, v).max(0.0);
+            }
         }
     });
     Rgb32FImage::from_raw(w as u32, h as u32, out).expect("size")
 }
 
-/// Leading `q` eigenvectors of the symmetric PSD `m×m` matrix `a`, each scaled by `1/sqrt(λ)`
-/// (KPCA normalisation); eigenpairs with negligible eigenvalue are dropped.
-fn top_eigen(a: &[f64], m: usize, q: usize) -> Vec<(f64, Vec<f64>)> {
-    // Deterministic start, subspace iteration with modified Gram–Schmidt.
-    let mut qm: Vec<Vec<f64>> = (0..q)
-        .map(|k| (0..m).map(|i| ((i * (k + 1)) as f64 * 0.618_034 + k as f64 * 0.37).sin() + 0.01).collect())
-        .collect();
-    let matvec = |v: &[f64]| -> Vec<f64> {
-        (0..m).map(|i| a[i * m..(i + 1) * m].iter().zip(v).map(|(x, y)| x * y).sum()).collect()
-    };
-    let orth = |vs: &mut Vec<Vec<f64>>| {
-        for k in 0..vs.len() {
-            for j in 0..k {
-                let d: f64 = vs[k].iter().zip(&vs[j]).map(|(x, y)| x * y).sum();
-                let vj = vs[j].clone();
-                vs[k].iter_mut().zip(&vj).for_each(|(x, y)| *x -= d * y);
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A periodic pattern with sub-pixel period, shifted per repeat by a known wobble: the aligned
+    /// mean must recover the sharp pattern, the unaligned mean of the same repeats is blurred.
+    #[test]
+    fn aligned_mean_keeps_a_sharp_repeat_of_a_wobbling_pattern() {
+        let (w, h, p) = (300usize, 260usize, 37.4f64);
+        // Dark 4 px "holes" on a bright cloth, the lattice wobbling by ±1.5 px across the image.
+        let f = |x: f64, y: f64| -> f32 {
+            let wob = 1.5 * (y / 90.0).sin();
+            let u = (x - wob).rem_euclid(p);
+            let v = y.rem_euclid(p);
+            if u < 4.0 && v < 4.0 {
+                0.05
+            } else {
+                0.8
             }
-            let n = vs[k].iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-300);
-            vs[k].iter_mut().for_each(|x| *x /= n);
-        }
-    };
-    orth(&mut qm);
-    for _ in 0..40 {
-        let mut z: Vec<Vec<f64>> = qm.iter().map(|v| matvec(v)).collect();
-        orth(&mut z);
-        qm = z;
-    }
-    // Rayleigh–Ritz.
-    let aq: Vec<Vec<f64>> = qm.iter().map(|v| matvec(v)).collect();
-    let mut b = vec![0.0; q * q];
-    for i in 0..q {
-        for j in 0..q {
-            b[i * q + j] = qm[i].iter().zip(&aq[j]).map(|(x, y)| x * y).sum();
-        }
-    }
-    let (vals, vecs) = sym_eigen(&b, q);
-    let lmax = vals.first().copied().unwrap_or(0.0).max(0.0);
-    vals.iter()
-        .zip(&vecs)
-        .filter(|(l, _)| **l > 1e-9 * lmax && **l > 0.0)
-        .map(|(l, y)| {
-            let mut v = vec![0.0; m];
-            for (j, &yj) in y.iter().enumerate() {
-                v.iter_mut().zip(&qm[j]).for_each(|(a, b)| *a += yj * b);
+        };
+        let mut data = vec![0.0f32; w * h * 3];
+        for y in 0..h {
+            for x in 0..w {
+                let v = f(x as f64, y as f64);
+                data[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[v, v, v]);
             }
-            let s = 1.0 / l.sqrt();
-            v.iter_mut().for_each(|x| *x *= s);
-            (*l, v)
-        })
-        .collect()
+        }
+        let img = blur_rgb(&Rgb32FImage::from_raw(w as u32, h as u32, data).unwrap(), 0.8);
+        let out = mean_of_repeats(&img, [p as f32 / 2.0; 2], p as f32, p as f32, &RepeatParams::default());
+        // Hole contrast: darkest output pixel against the median pixel. The unaligned average of
+        // ±1.5 px shifted 4 px holes would lift the hole floor above ~0.3.
+        let g = Gray::from_rgb(&out);
+        let mut v = g.data.clone();
+        v.sort_by(|a, b| a.total_cmp(b));
+        let (dark, mid) = (v[0], v[v.len() / 2]);
+        assert!(dark < 0.25 && mid > 0.75, "hole {dark:.3}, cloth {mid:.3}");
+        let no_align = RepeatParams { max_shift: 0.0, ..Default::default() };
+        // max_shift 0 still searches ±1 px (the parabola needs neighbours); the wobble is larger.
+        let blurred = mean_of_repeats(&img, [p as f32 / 2.0; 2], p as f32, p as f32, &no_align);
+        let gb = Gray::from_rgb(&blurred);
+        let dark_b = gb.data.iter().cloned().fold(f32::MAX, f32::min);
+        assert!(dark < dark_b, "aligned {dark:.3} vs ±1 px {dark_b:.3}");
+        // Output is periodic with the lattice: pixel x and x + 2P agree (up to interpolation).
+        let (a, b) = (g.at(20, 40), g.at(20 + 2 * 37 + 1, 40));
+        assert!((a - b).abs() < 0.15, "{a} vs {b}");
+    }
+
+    #[test]
+    fn single_repeat_is_returned_unchanged_and_outliers_are_dropped() {
+        let img = Rgb32FImage::from_fn(64, 48, |x, y| image::Rgb([(x % 7) as f32 / 7.0, (y % 5) as f32 / 5.0, 0.5]));
+        let out = mean_of_repeats(&img, [10.0, 10.0], 64.0, 48.0, &RepeatParams::default());
+        assert_eq!(out.as_raw(), img.as_raw());
+        // 8×6 repeats of a 20 px stripe pattern, one repeat painted over: the output has no paint.
+        let mut img = Rgb32FImage::from_fn(200, 150, |x, _| {
+            let v = if x % 20 < 10 { 0.2 } else { 0.7 };
+            image::Rgb([v, v, v])
+        });
+        for y in 60..80 {
+            for x in 90..110 {
+                img.put_pixel(x, y, image::Rgb([1.0, 0.0, 1.0]));
+            }
+        }
+        let out = mean_of_repeats(&img, [10.0, 10.0], 20.0, 20.0, &RepeatParams::default());
+        let worst = out.pixels().map(|p| (p.0[0] - p.0[1]).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 0.02, "paint leaked into the mean: {worst}");
+    }
 }
