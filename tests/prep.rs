@@ -178,3 +178,49 @@ fn a_twill_photo_with_a_flat_projection_is_prepared() {
     assert!((p.angle_deg - 2.3).abs() < 1.0, "angle {}", p.angle_deg);
     assert_eq!((p.n_e, p.n_a), (4, 4));
 }
+
+/// Sharpness of prepared crops, for docs/prep.md: for every `<dir>/<name>/crop.png` of the
+/// folders in `WOVEN_PREP_DIRS` (comma-separated, e.g. `woven prep` outputs before and after a
+/// change), the high-frequency energy ratio (variance of grey − its σ = 2 px blur, over the grey
+/// variance) and the hole contrast ((p50 − p2) / p50 of grey). Prints only; skipped without the
+/// variable. Run with `cargo test --release --test prep -- --ignored crop_sharpness --nocapture`.
+#[test]
+#[ignore]
+fn crop_sharpness() {
+    let Ok(dirs) = std::env::var("WOVEN_PREP_DIRS") else {
+        eprintln!("skipped: set WOVEN_PREP_DIRS to folders of `woven prep` outputs");
+        return;
+    };
+    for name in ["fabricnet_W013", "fabricnet_W044", "fabricnet_W078", "fabricnet_W039", "microscope_plain_a"] {
+        for dir in dirs.split(',') {
+            let path = std::path::Path::new(dir).join(name).join("crop.png");
+            let Ok(img) = Image::load(&path, 1) else {
+                println!("{name} {dir}: no crop");
+                continue;
+            };
+            let g: Vec<f32> = img.data.iter().map(|p| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]).collect();
+            let (w, h) = (img.width as i64, img.height as i64);
+            let k: Vec<f32> = (-6..=6).map(|i: i32| (-(i * i) as f32 / 8.0).exp()).collect();
+            let ks: f32 = k.iter().sum();
+            let at = |v: &[f32], x: i64, y: i64| v[(y.clamp(0, h - 1) * w + x.clamp(0, w - 1)) as usize];
+            let bx: Vec<f32> = (0..w * h)
+                .map(|i| (-6..=6i64).map(|d| k[(d + 6) as usize] * at(&g, i % w + d, i / w)).sum::<f32>() / ks)
+                .collect();
+            let b: Vec<f32> = (0..w * h)
+                .map(|i| (-6..=6i64).map(|d| k[(d + 6) as usize] * at(&bx, i % w, i / w + d)).sum::<f32>() / ks)
+                .collect();
+            let n = g.len() as f64;
+            let mean = g.iter().map(|&v| v as f64).sum::<f64>() / n;
+            let var = g.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+            let hf = g.iter().zip(&b).map(|(a, c)| ((a - c) as f64).powi(2)).sum::<f64>() / n;
+            let mut s = g.clone();
+            s.sort_by(|a, b| a.total_cmp(b));
+            let (p2, p50) = (s[s.len() / 50], s[s.len() / 2]);
+            println!(
+                "{name} {dir}: hf_ratio {:.4} hole_contrast {:.3}",
+                hf / var.max(1e-12),
+                (p50 - p2) / p50.max(1e-6)
+            );
+        }
+    }
+}
