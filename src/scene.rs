@@ -202,6 +202,13 @@ pub struct Scene {
     pub lights: LightRig,
     /// Exposure multiplier applied to the linear image before writing, [1e-4, 1e4].
     pub exposure: f32,
+    /// What a camera ray that misses the cloth sees (linear RGB radiance, before the exposure, each
+    /// in [0, 100]): a backdrop behind the cloth, such as the table under a photographed fabric or
+    /// another renderer's environment seen through the gaps. `None`: the lights themselves (the
+    /// ambient light and a back light's disc). A fit solves it from the gaps of the photo
+    /// (`fit::evaluator`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub backdrop: Option<Rgb>,
 }
 
 impl Default for Scene {
@@ -214,6 +221,7 @@ impl Default for Scene {
             camera: CameraSpec::default(),
             lights: LightRig::default_rig(),
             exposure: 1.0,
+            backdrop: None,
         }
     }
 }
@@ -225,6 +233,9 @@ impl Scene {
         check_range("scene.height", self.height as f64, 8.0, 8192.0)?;
         check_range("scene.spp", self.spp as f64, 1.0, 65536.0)?;
         check_range("scene.exposure", self.exposure as f64, 1e-4, 1e4)?;
+        for (k, b) in self.backdrop.iter().flatten().enumerate() {
+            check_range(&format!("scene.backdrop[{k}]"), *b as f64, 0.0, 100.0)?;
+        }
         let c = &self.camera;
         check_range("scene.camera.tiles", c.tiles as f64, 0.25, 64.0)?;
         check_range("scene.camera.rotation_deg", c.rotation_deg as f64, -180.0, 180.0)?;

@@ -276,6 +276,7 @@ impl Recipe {
             camera,
             lights: rig,
             exposure,
+            backdrop: None,
         };
 
         cloth.validate().map_err(|e| anyhow::anyhow!("sample {index}: drawn cloth is invalid: {e}"))?;

@@ -12,7 +12,7 @@ use crate::render::PathCache;
 pub(crate) fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f32 {
     let cache = ev.record(cand);
     fit_colours(ev, cand, &cache, c);
-    ev.mse_of(&cache.shade(&cand.appearance))
+    ev.loss_of(&cache, &cand.appearance)
 }
 
 /// Body colours: per channel a two-point affine fit of the rendered cell means of each yarn

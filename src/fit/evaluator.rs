@@ -54,6 +54,12 @@ impl Blocks {
             .then(|| ((y / self.side) * self.cols + x / self.side) as usize)
     }
 
+    /// Pixel indices of block `o` (row-major in the image).
+    fn pixels_of(&self, o: usize) -> impl Iterator<Item = usize> + '_ {
+        let (bx, by) = ((o as u32 % self.cols) * self.side, (o as u32 / self.cols) * self.side);
+        (by..by + self.side).flat_map(move |y| (bx..bx + self.side).map(move |x| (y * self.width + x) as usize))
+    }
+
     /// `f(pixel index, block index)` for every pixel of a whole block, rows top-down and pixels
     /// left to right (the order every filter here accumulates in).
     fn visit(&self, mut f: impl FnMut(usize, usize)) {
@@ -153,6 +159,95 @@ where
     pass(&pass(px, true), false)
 }
 
+/// Mean miss coverage (fraction of all camera samples that see through the cloth) below which no
+/// backdrop is solved: a handful of gap samples cannot tell a backdrop from the noise, and the
+/// lights' own radiance is kept for them.
+const MIN_BACKDROP_COVERAGE: f32 = 1e-3;
+
+/// Candidate values of the grid search of [`solve_backdrop`] before its golden-section polish.
+const BACKDROP_GRID: usize = 25;
+
+/// Largest backdrop (linear, in the image's units) the search of [`solve_backdrop`] considers: a
+/// bright backdrop seen through a narrow or blurred gap still shows below display white, so the
+/// search must reach past 1 (the default rig's back-light disc is ~5).
+const BACKDROP_MAX: f32 = 8.0;
+
+/// The backdrop (linear RGB in the image's units, each in [0, [`BACKDROP_MAX`]]) that minimises
+/// the loss of `cloth + β·cov` against the target's loss values `target`, where `cloth` is a render
+/// without what its missing samples saw and `cov` their per-pixel fraction, both already blurred
+/// as the target was: per channel, the clamped block means of the loss ([`block_filter`]),
+/// sRGB-encoded, squared error. `None` where the lights' own radiance seen by those samples,
+/// `lights` (blurred alike), explains the gaps at least as well: it varies per sample (the ambient
+/// light, a back light's disc), which no single colour reproduces, and it is exact for the
+/// project's own renders. The image is linear in β, but the loss is not (clamp, sRGB), so β is
+/// found by a grid search (quadratic spacing: finer near 0, where most backdrops lie) refined by
+/// golden-section search in the best grid interval; each block's error is monotone in β on
+/// either side of its own optimum, so the grid keeps the search away from a side minimum. Only the
+/// blocks that see a gap depend on β.
+fn solve_backdrop(
+    cloth: &[[f32; 3]],
+    cov: &[f32],
+    lights: &[[f32; 3]],
+    blocks: &Blocks,
+    target: &[[f32; 3]],
+) -> Option<[f32; 3]> {
+    let touched: Vec<(usize, Vec<usize>)> = (0..blocks.len())
+        .map(|o| (o, blocks.pixels_of(o).collect::<Vec<usize>>()))
+        .filter(|(_, px)| px.iter().any(|&p| cov[p] > 1e-6))
+        .collect();
+    let inv = blocks.weight();
+    let lights_loss: f32 = touched
+        .iter()
+        .map(|(o, px)| {
+            (0..3)
+                .map(|k| {
+                    let v: f32 = px.iter().map(|&p| (cloth[p][k] + lights[p][k]).clamp(0.0, 1.0) * inv).sum();
+                    (linear_to_srgb(v) - target[*o][k]).powi(2)
+                })
+                .sum::<f32>()
+        })
+        .sum();
+    let mut beta = [0.0f32; 3];
+    let mut beta_loss = 0.0f32;
+    let at = |i: f32| BACKDROP_MAX * (i / (BACKDROP_GRID - 1) as f32).powi(2);
+    for (k, bk) in beta.iter_mut().enumerate() {
+        let loss = |b: f32| -> f32 {
+            touched
+                .iter()
+                .map(|(o, px)| {
+                    let v: f32 = px.iter().map(|&p| (cloth[p][k] + b * cov[p]).clamp(0.0, 1.0) * inv).sum();
+                    (linear_to_srgb(v) - target[*o][k]).powi(2)
+                })
+                .sum()
+        };
+        let grid: Vec<f32> = (0..BACKDROP_GRID).map(|i| loss(at(i as f32))).collect();
+        let best = (0..BACKDROP_GRID).min_by(|&i, &j| grid[i].total_cmp(&grid[j])).unwrap_or(0);
+        // Golden-section search on the two grid intervals around the best grid point.
+        let (mut lo, mut hi) = (at((best as f32 - 1.0).max(0.0)), at((best + 1).min(BACKDROP_GRID - 1) as f32));
+        let g = 0.618_034f32;
+        let (mut x1, mut x2) = (hi - g * (hi - lo), lo + g * (hi - lo));
+        let (mut f1, mut f2) = (loss(x1), loss(x2));
+        for _ in 0..16 {
+            if f1 <= f2 {
+                hi = x2;
+                (x2, f2) = (x1, f1);
+                x1 = hi - g * (hi - lo);
+                f1 = loss(x1);
+            } else {
+                lo = x1;
+                (x1, f1) = (x2, f2);
+                x2 = lo + g * (hi - lo);
+                f2 = loss(x2);
+            }
+        }
+        let (x, f) = if f1 <= f2 { (x1, f1) } else { (x2, f2) };
+        let (x, f) = if f <= grid[best] { (x, f) } else { (at(best as f32), grid[best]) };
+        *bk = x;
+        beta_loss += f;
+    }
+    (beta_loss < lights_loss).then_some(beta)
+}
+
 /// Loss of an MSE at appearance `x`: the MSE plus the appearance barrier (paper eq. 5).
 pub(crate) fn total_loss(mse: f32, x: &[f32; N_APPEARANCE]) -> f32 {
     mse + anneal::appearance_barrier(x).0
@@ -184,6 +279,9 @@ pub(crate) struct Evaluator {
     blur: f32,
     opts: RenderOptions,
     traces: TraceCounter,
+    /// Whether a backdrop is solved for the samples that miss the cloth (see
+    /// [`Evaluator::with_backdrop`]).
+    backdrop: bool,
 }
 
 impl Evaluator {
@@ -196,7 +294,7 @@ impl Evaluator {
     fn with_counter(scene: Scene, target: Image, b: u32, traces: TraceCounter) -> Self {
         let b = b.max(1);
         let target_f = loss_values(&target, b);
-        Evaluator { scene, target, target_f, b, blur: 0.0, opts: RenderOptions::default(), traces }
+        Evaluator { scene, target, target_f, b, blur: 0.0, opts: RenderOptions::default(), traces, backdrop: false }
     }
 
     /// The same evaluator with the renders blurred by a Gaussian of `sigma` pixels (periodic:
@@ -210,12 +308,21 @@ impl Evaluator {
         self
     }
 
+    /// The same evaluator solving (`on`) or not a backdrop seen through the cloth's gaps
+    /// (`solve_backdrop_for`). On for a photo (prepared target); off for a one-repeat render of
+    /// the model's own, whose gaps show the model's lights: there the free backdrop only competes
+    /// with the radii (the radius Newton step overshot with it on).
+    pub(crate) fn with_backdrop(mut self, on: bool) -> Self {
+        self.backdrop = on;
+        self
+    }
+
     /// Another view (scene, target, block size) whose re-traces count on this one's counter;
     /// its blur is this one's scaled to the new scene's pixels.
     pub(crate) fn sibling(&self, scene: Scene, target: Image, b: u32) -> Self {
         let scale = scene.width as f32 / self.scene.width.max(1) as f32;
         let blur = self.blur * scale;
-        Self::with_counter(scene, target, b, self.traces.clone()).with_blur(blur)
+        Self::with_counter(scene, target, b, self.traces.clone()).with_blur(blur).with_backdrop(self.backdrop)
     }
 
     /// A render as the target sees it: blurred as the target was (see [`Evaluator::with_blur`]).
@@ -259,6 +366,68 @@ impl Evaluator {
         &self.traces
     }
 
+    /// The backdrop that best explains what the target shows through the cloth's gaps, given the
+    /// render `raw` of the recorded paths `cache` ([`PathCache::shade`] or the values of its
+    /// derivatives) and what its missing samples saw, `(coverage, radiance)` of
+    /// [`PathCache::misses`]: linear RGB in the image's units (exposure applied), each in [0, [`BACKDROP_MAX`]].
+    /// `None` where too few samples miss the cloth to tell ([`MIN_BACKDROP_COVERAGE`]) or where
+    /// the lights' own radiance explains the gaps at least as well ([`solve_backdrop`]).
+    ///
+    /// A photo shows what lies behind the cloth through its gaps (a table, a backdrop, another
+    /// renderer's environment), which the model's lights do not: Mitsuba's constant ambient 0.25
+    /// makes the gaps grey where our back light's disc makes them white, and every gap pixel paid
+    /// for it whatever the cloth. The render is linear in the backdrop (`cloth + β·coverage`,
+    /// blurred alike), so it is solved at every evaluation, like a nuisance parameter. At the
+    /// solved β the loss is stationary in β (up to its bounds), so the gradient with β held
+    /// fixed is the gradient of the loss minimised over β (the envelope theorem).
+    fn solve_backdrop_for(
+        &self,
+        raw: &[[f32; 3]],
+        w: u32,
+        h: u32,
+        misses: &(Vec<f32>, Vec<[f32; 3]>),
+    ) -> Option<[f32; 3]> {
+        let (cov, rad) = misses;
+        let n = cov.len().max(1) as f32;
+        if !self.backdrop || cov.iter().sum::<f32>() / n < MIN_BACKDROP_COVERAGE {
+            return None;
+        }
+        let mut cloth: Vec<[f32; 3]> =
+            raw.iter().zip(rad).map(|(p, r)| [p[0] - r[0], p[1] - r[1], p[2] - r[2]]).collect();
+        let mut cov3: Vec<[f32; 3]> = cov.iter().map(|&c| [c; 3]).collect();
+        let mut lights = rad.clone();
+        if self.blur >= MIN_BLUR {
+            let k = gaussian_taps(self.blur);
+            cloth = blur_periodic(&cloth, w as usize, h as usize, &k);
+            cov3 = blur_periodic(&cov3, w as usize, h as usize, &k);
+            lights = blur_periodic(&lights, w as usize, h as usize, &k);
+        }
+        let cov1: Vec<f32> = cov3.iter().map(|c| c[0]).collect();
+        solve_backdrop(&cloth, &cov1, &lights, &Blocks::new(w, h, self.b), &self.target_f)
+    }
+
+    /// The backdrop solved for `cloth`'s recorded paths `cache` at appearance `a` (see
+    /// [`Evaluator::shaded`]); `None` where too few samples see through the cloth or the lights
+    /// explain what they see.
+    pub(crate) fn backdrop(&self, cache: &PathCache, a: &Appearance) -> Option<[f32; 3]> {
+        let img = cache.shade(a);
+        self.solve_backdrop_for(&img.data, img.width, img.height, &cache.misses())
+    }
+
+    /// The recorded paths `cache` shaded with `a`, with the samples that miss the cloth seeing the
+    /// backdrop solved for them instead of the lights (`solve_backdrop_for`): the render the
+    /// loss compares, before the blur of [`Evaluator::observe`].
+    pub(crate) fn shaded(&self, cache: &PathCache, a: &Appearance) -> Image {
+        let mut img = cache.shade(a);
+        let misses = cache.misses();
+        if let Some(beta) = self.solve_backdrop_for(&img.data, img.width, img.height, &misses) {
+            for ((p, c), r) in img.data.iter_mut().zip(&misses.0).zip(&misses.1) {
+                (0..3).for_each(|k| p[k] += beta[k] * c - r[k]);
+            }
+        }
+        img
+    }
+
     /// Trace the paths of `cloth` (one re-trace).
     pub(crate) fn record(&self, cloth: &ClothParams) -> PathCache {
         self.traces.add();
@@ -272,9 +441,15 @@ impl Evaluator {
         f.iter().zip(&self.target_f).map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()).sum::<f32>() / n
     }
 
-    /// MSE of `cloth` as it stands: trace it, shade it with its own appearance.
+    /// Loss (MSE of the loss values) of the recorded paths `cache` shaded with `a`, backdrop
+    /// solved ([`Evaluator::shaded`]).
+    pub(crate) fn loss_of(&self, cache: &PathCache, a: &Appearance) -> f32 {
+        self.mse_of(&self.shaded(cache, a))
+    }
+
+    /// MSE of `cloth` as it stands: trace it, shade it with its own appearance (backdrop solved).
     pub(crate) fn trace_mse(&self, cloth: &ClothParams) -> f32 {
-        self.mse_of(&self.record(cloth).shade(&cloth.appearance))
+        self.loss_of(&self.record(cloth), &cloth.appearance)
     }
 
     /// Loss, its exact gradient and (with `hessian`) its Gauss–Newton Hessian `2JᵀJ/n`
@@ -283,6 +458,15 @@ impl Evaluator {
     fn derivatives(&self, cache: &PathCache, a: &Appearance, hessian: bool) -> (f32, [f32; N_APPEARANCE], Vec<f64>) {
         let (w, h) = cache.size();
         let mut px = cache.shade_with_derivatives(a);
+        // The backdrop seen through the gaps, solved on the values and held fixed in the
+        // derivatives (see `solve_backdrop_for`: the envelope theorem).
+        let misses = cache.misses();
+        let values: Vec<[f32; 3]> = px.iter().map(|p| p.map(|d| d.v)).collect();
+        if let Some(beta) = self.solve_backdrop_for(&values, w, h, &misses) {
+            for ((p, c), r) in px.iter_mut().zip(&misses.0).zip(&misses.1) {
+                (0..3).for_each(|k| p[k] = p[k] + (beta[k] * c - r[k]));
+            }
+        }
         if self.blur >= MIN_BLUR {
             px = blur_periodic(&px, w as usize, h as usize, &gaussian_taps(self.blur));
         }
@@ -437,5 +621,61 @@ mod tests {
         let fine = fit_scene(n_e, n_a, 16, 2, 1, &LightRig::default_rig());
         let sib = blur_ev.sibling(fine, Image::filled(16 * n_a as u32, 16 * n_e as u32, [0.3; 3]), 2);
         assert!((sib.blur - 2.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_backdrop_seen_through_the_gaps_is_solved_and_rendered() {
+        // An open plain weave, so that the camera sees through its gaps.
+        let mut cloth = ClothParams::preset("plain").expect("preset");
+        (cloth.r_e, cloth.r_a) = (3.0, 3.0);
+        let mut scene = fit_scene(2, 2, 12, 4, 1, &LightRig::default_rig());
+        scene.exposure = 1.25;
+        // The target sees a grey-blue backdrop through the gaps (lights' units: ×1.25 on screen).
+        let truth = [0.2f32, 0.3, 0.4];
+        let sharp =
+            crate::render::render(&cloth, &Scene { backdrop: Some(truth), ..scene.clone() }, &Default::default());
+        let target = Evaluator::new(scene.clone(), sharp.clone(), 2).with_blur(0.8).observe(&sharp);
+        let ev = Evaluator::new(scene.clone(), target, 2).with_blur(0.8).with_backdrop(true);
+        assert_eq!(
+            Evaluator::new(scene.clone(), sharp.clone(), 2).backdrop(&ev.record(&cloth), &cloth.appearance),
+            None
+        );
+        let cache = ev.record(&cloth);
+        let (cov, _) = cache.misses();
+        let mean_cov = cov.iter().sum::<f32>() / cov.len() as f32;
+        assert!(mean_cov > 0.02, "the open weave shows gaps: {mean_cov}");
+        let beta = ev.backdrop(&cache, &cloth.appearance).expect("gaps seen");
+        for k in 0..3 {
+            assert!((beta[k] - truth[k] * 1.25).abs() < 0.01, "{beta:?} vs {truth:?}×1.25");
+        }
+        // With the backdrop solved the render is the target (same samples); with the lights'
+        // white disc in the gaps it is far from it.
+        let fitted = ev.loss_of(&cache, &cloth.appearance);
+        let lights = ev.mse_of(&cache.shade(&cloth.appearance));
+        assert!(fitted < 1e-6 && lights > 1e-3, "{fitted} vs {lights}");
+        let (l, _) = ev.loss_grad(&cache, &cloth.appearance);
+        assert!((l - fitted).abs() < 1e-6, "{l} vs {fitted}");
+        // The gradient with β held at its optimum is the gradient of the loss minimised over β
+        // (envelope theorem): compare with a central difference that re-solves β.
+        let far = Evaluator::new(scene.clone(), Image::filled(24, 24, [0.25; 3]), 2).with_blur(0.8).with_backdrop(true);
+        let (_, g) = far.loss_grad(&cache, &cloth.appearance);
+        let i = crate::params::param::R_B_E;
+        let h = 0.01;
+        let (mut a, mut b) = (cloth.appearance.clone(), cloth.appearance.clone());
+        a.r_b_e[0] += h;
+        b.r_b_e[0] -= h;
+        let fd = (far.loss_of(&cache, &a) - far.loss_of(&cache, &b)) / (2.0 * h);
+        assert!((g[i] - fd).abs() <= 0.05 * fd.abs().max(1e-4), "analytic {} vs difference {fd}", g[i]);
+        // A target that sees the lights themselves through the gaps keeps them: their radiance
+        // varies per sample (ambient, back-light disc), which no single colour matches as well.
+        let lit =
+            Evaluator::new(scene.clone(), ev.observe(&crate::render::render(&cloth, &scene, &Default::default())), 2)
+                .with_blur(0.8);
+        assert_eq!(lit.backdrop(&cache, &cloth.appearance), None);
+        // Where (almost) no sample sees through the cloth, no backdrop is solved.
+        let img = cache.shade(&cloth.appearance);
+        let n = cov.len();
+        let few: Vec<f32> = (0..n).map(|p| if p == 0 { 0.5 * MIN_BACKDROP_COVERAGE * n as f32 } else { 0.0 }).collect();
+        assert_eq!(ev.solve_backdrop_for(&img.data, img.width, img.height, &(few, vec![[0.0; 3]; n])), None);
     }
 }

@@ -223,7 +223,7 @@ struct Walker<'a> {
 impl<'a> Walker<'a> {
     fn new(ev: &'a Evaluator, start: ClothParams) -> Self {
         let cache = ev.record(&start);
-        let mse = ev.mse_of(&cache.shade(&start.appearance));
+        let mse = ev.loss_of(&cache, &start.appearance);
         let loss = total_loss(mse, &start.appearance.to_vec());
         Walker {
             ev,
@@ -251,7 +251,7 @@ impl<'a> Walker<'a> {
         for _ in 0..CALIBRATION_DRAWS {
             let cand = Proposal::draw(rng, &self.cloth, cells).apply(&self.cloth);
             let cc = self.ev.record(&cand);
-            let l = self.ev.mse_of(&cc.shade(&cand.appearance));
+            let l = self.ev.loss_of(&cc, &cand.appearance);
             if l > self.mse {
                 ups.push((l - self.mse) as f64);
             } else if l < self.mse {
@@ -278,7 +278,7 @@ impl<'a> Walker<'a> {
         let p = Proposal::draw(rng, &self.cloth, cells);
         let cand = p.apply(&self.cloth);
         let cc = self.ev.record(&cand);
-        let l = self.ev.mse_of(&cc.shade(&cand.appearance));
+        let l = self.ev.loss_of(&cc, &cand.appearance);
         let delta_e = scale * (l - self.mse) as f64;
         let accepted = anneal::metropolis_accept(delta_e, t, rng);
         if accepted {

@@ -171,7 +171,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
             r.px_per_cell,
         );
     }
-    let ev0 = Evaluator::new(scene, target.image.clone(), r.loss_block).with_blur(target.blur_px);
+    let ev0 = Evaluator::new(scene, target.image.clone(), r.loss_block)
+        .with_blur(target.blur_px)
+        .with_backdrop(target.prep.is_some());
     let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
 
@@ -213,7 +215,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     Ok(FitResult {
         params: out.params,
         cloth: out.cloth,
-        fit_scene: ev.scene().clone(),
+        fit_scene: out.fit_scene,
         target: ev.target().clone(),
         render: out.render,
         psnr_db: out.psnr_db,

@@ -24,6 +24,8 @@ pub(crate) struct FinalState {
     pub render: Image,
     /// PSNR (sRGB) of `render` against the target.
     pub psnr_db: f32,
+    /// The fit's view with the backdrop solved for `cloth` ([`Scene::backdrop`]).
+    pub fit_scene: Scene,
 }
 
 /// The final state of `best` (on the `grid` of the fit's evaluator `ev`) for an input of `size`
@@ -38,8 +40,14 @@ pub(crate) fn final_state(
 ) -> Result<FinalState> {
     // The barrier lets the optimizer step a little past the Table-1 ranges.
     let cloth = best.clamped();
+    // The backdrop seen through the gaps, solved on the fit's own samples (the loss solves it at
+    // every evaluation), in the lights' units: the scene's exposure multiplies it again.
+    let mut fit_scene = ev.scene().clone();
+    let exposure = fit_scene.exposure.max(1e-4);
+    fit_scene.backdrop =
+        ev.backdrop(&ev.record(&cloth), &cloth.appearance).map(|b| b.map(|v| (v / exposure).clamp(0.0, 100.0)));
     let final_scene =
-        Scene { spp: settings.final_spp.max(1), seed: settings.seed.wrapping_add(7), ..ev.scene().clone() };
+        Scene { spp: settings.final_spp.max(1), seed: settings.seed.wrapping_add(7), ..fit_scene.clone() };
     let render = Prepared::new(&cloth, &final_scene, &RenderOptions::default()).render(&cloth.appearance);
     // Against the target as the fit saw it: the render blurred as preparation blurred the target.
     let psnr_db = ev.observe(&render).psnr_srgb(ev.target());
@@ -47,10 +55,10 @@ pub(crate) fn final_state(
     let reduced = if cloth.body_texture.is_some() { cloth.pattern.clone() } else { cloth.pattern.reduced() };
     let mut out_cloth = cloth.clone();
     out_cloth.pattern = reduced.clone();
-    let scene = output_scene(ev.scene(), grid, (reduced.n_e(), reduced.n_a()), size, prep);
+    let scene = output_scene(&fit_scene, grid, (reduced.n_e(), reduced.n_a()), size, prep);
     let params = ParamFile { cloth: out_cloth, scene };
     params.validate().context("fitted parameter file does not validate")?;
-    Ok(FinalState { cloth, params, render, psnr_db })
+    Ok(FinalState { cloth, params, render, psnr_db, fit_scene })
 }
 
 /// Scene rendering the input's framing for a cloth with `reduced` pattern when the fit grid is

@@ -157,7 +157,7 @@ const VIEW_MARGIN: f32 = 0.01;
 /// estimated, places the cell boundaries more precisely, and tells how much blur the photo adds.
 /// Returns the shift and the blur σ (pixels).
 pub(crate) fn fit_view(ev: &Evaluator, cloth: &ClothParams, blur0: f32) -> ((i32, i32), f32) {
-    let img = ev.record(cloth).shade(&cloth.appearance);
+    let img = ev.shaded(&ev.record(cloth), &cloth.appearance);
     let sharp = |t: Image| ev.sibling(ev.scene().clone(), t, ev.block()).with_blur(0.0);
     let base = sharp(ev.target().clone()).mse_of(&ev.observe(&img));
     let mut best = ((0, 0), blur0, base * (1.0 - VIEW_MARGIN));

@@ -75,7 +75,7 @@ impl ContinuousStep {
             cc.r_e = (r0[0] + s * delta[0]).clamp(lo, hi);
             cc.r_a = (r0[1] + s * delta[1]).clamp(lo, hi);
             reach[side] = [cc.r_e, cc.r_a];
-            lp[side] = ev.mse_of(&ev.record(&cc).shade(&cc.appearance));
+            lp[side] = ev.loss_of(&ev.record(&cc), &cc.appearance);
         }
         let gr: [f32; 2] = std::array::from_fn(|q| {
             let span = reach[0][q] - reach[1][q];
@@ -160,7 +160,7 @@ pub(super) fn radius_newton(ev: &Evaluator, cloth: &mut ClothParams, l0: f32, h:
     let at = |re: f32, ra: f32| {
         let mut c = cloth.clone();
         (c.r_e, c.r_a) = (re.clamp(lo, hi), ra.clamp(lo, hi));
-        let l = ev.mse_of(&ev.record(&c).shade(&c.appearance));
+        let l = ev.loss_of(&ev.record(&c), &c.appearance);
         (l + anneal::appearance_barrier(&c.appearance.to_vec()).0, c)
     };
     let r0 = [cloth.r_e, cloth.r_a];
@@ -291,7 +291,7 @@ mod tests {
         a.r_s = [0.3, 0.3, 0.3];
         a.alpha_s = 0.5;
         let cache = ev.record(&cloth);
-        let before = ev.mse_of(&cache.shade(&cloth.appearance));
+        let before = ev.loss_of(&cache, &cloth.appearance);
         let after = lm_appearance(&ev, &cache, &mut cloth, 15, &AtomicBool::new(false));
         assert!(after.is_finite() && after < before / 100.0, "loss {before:.3e} -> {after:.3e}");
         let x = cloth.appearance.to_vec();
@@ -318,7 +318,7 @@ mod tests {
         let ev = noise_free(&truth);
         let mut cloth = truth.clone();
         (cloth.r_e, cloth.r_a) = (truth.r_e - 0.3, truth.r_a + 0.3);
-        let l0 = ev.mse_of(&ev.record(&cloth).shade(&cloth.appearance));
+        let l0 = ev.loss_of(&ev.record(&cloth), &cloth.appearance);
         let mut loss = l0;
         for _ in 0..3 {
             loss = radius_newton(&ev, &mut cloth, loss, RADIUS_H).0;

@@ -24,6 +24,7 @@ pub fn fit_scene(n_e: usize, n_a: usize, c: u32, spp: u32, seed: u64, lights: &L
         },
         lights: lights.clone(),
         exposure: 1.0,
+        backdrop: None,
     }
 }
 

@@ -61,6 +61,8 @@ pub struct Prepared {
     spp: u32,
     seed: u64,
     exposure: f32,
+    /// [`Scene::backdrop`]: what a camera sample that misses the cloth sees instead of the lights.
+    backdrop: Option<[f32; 3]>,
 }
 
 impl Prepared {
@@ -94,6 +96,19 @@ impl Prepared {
             spp: scene.spp,
             seed: scene.seed,
             exposure: scene.exposure,
+            backdrop: scene.backdrop,
+        }
+    }
+
+    /// Trace one camera sample into `buf`; a sample that misses the cloth (no path vertex: the
+    /// ray found no yarn, or only passed between plies) sees the scene's backdrop when it has one
+    /// instead of the lights' own radiance.
+    fn trace_sample(&self, tracer: &Tracer, x: u32, y: u32, s: u32, buf: &mut PathBuf) {
+        let mut rng = sample_rng(self.seed, self.pixel_index(x, y), s as u64);
+        let (jx, jy) = self.jitter(s, &mut rng);
+        tracer.trace(x as f32 + jx, y as f32 + jy, &mut rng, buf);
+        if let (Some(b), true) = (self.backdrop, buf.verts.is_empty()) {
+            buf.background = b;
         }
     }
 
@@ -150,9 +165,7 @@ impl Prepared {
                 let x = wx + col as u32;
                 let mut acc = [0.0f32; 3];
                 for s in 0..self.spp {
-                    let mut rng = sample_rng(self.seed, self.pixel_index(x, y), s as u64);
-                    let (jx, jy) = self.jitter(s, &mut rng);
-                    tracer.trace(x as f32 + jx, y as f32 + jy, &mut rng, &mut buf);
+                    self.trace_sample(&tracer, x, y, s, &mut buf);
                     let l =
                         shade::shade_path(&sp, buf.background, &buf.verts, &buf.lights, self.texture.as_ref(), None);
                     (0..3).for_each(|k| acc[k] += l[k]);
@@ -178,9 +191,7 @@ impl Prepared {
                 for col in 0..w {
                     let x = wx + col;
                     for s in 0..self.spp {
-                        let mut rng = sample_rng(self.seed, self.pixel_index(x, y), s as u64);
-                        let (jx, jy) = self.jitter(s, &mut rng);
-                        tracer.trace(x as f32 + jx, y as f32 + jy, &mut rng, &mut buf);
+                        self.trace_sample(&tracer, x, y, s, &mut buf);
                         rc.push(col, &buf);
                     }
                 }
@@ -259,6 +270,24 @@ impl PathCache {
     /// Image size.
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
+    }
+
+    /// Per pixel (row-major), the fraction of its samples that missed the cloth (no path vertex:
+    /// they see the lights or the scene's backdrop through a gap) and what those samples add to the
+    /// pixel (linear RGB, exposure applied): a fit replaces the second by a backdrop it solves
+    /// for, `value − added + backdrop × coverage`, without re-tracing.
+    pub fn misses(&self) -> (Vec<f32>, Vec<[f32; 3]>) {
+        let n = (self.width * self.height) as usize;
+        let (mut cov, mut rad) = (vec![0.0f32; n], vec![[0.0f32; 3]; n]);
+        let (inv, scale) = (1.0 / self.spp as f32, self.exposure / self.spp as f32);
+        for (row, r) in self.rows.iter().enumerate() {
+            for &(col, bg, _, _) in r.samples.iter().filter(|s| s.3 == 0) {
+                let p = row * self.width as usize + col as usize;
+                cov[p] += inv;
+                (0..3).for_each(|k| rad[p][k] += bg[k] * scale);
+            }
+        }
+        (cov, rad)
     }
 
     /// Total recorded vertices (memory use indicator).
