@@ -179,6 +179,19 @@ fn a_twill_photo_with_a_flat_projection_is_prepared() {
     assert_eq!((p.n_e, p.n_a), (4, 4));
 }
 
+/// A Mitsuba render of a 2/2 twill, axis-aligned: its Radon energy peaks higher at 18.5° (the cell
+/// lattice's diagonal atan(1/3), with its perpendicular) than at 0°, and it was prepared rotated as
+/// a 5×7 grid. The yarn axes are the directions with straight yarn boundaries (edge fundamental);
+/// the rescoring of the Radon peaks keeps 0° and the 4×4 repeat.
+#[test]
+fn a_twill_render_is_not_rotated_to_its_lattice_diagonal() {
+    let Some(path) = shared_file("data/mitsuba/d03_twill22_grey_red.png") else { return };
+    let img = Image::load(&path, 32).unwrap();
+    let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
+    assert!(p.angle_deg.abs() < 0.5, "angle {}", p.angle_deg);
+    assert_eq!((p.n_e, p.n_a), (4, 4));
+}
+
 /// Sharpness of prepared crops, for docs/prep.md: for every `<dir>/<name>/crop.png` of the
 /// folders in `WOVEN_PREP_DIRS` (comma-separated, e.g. `woven prep` outputs before and after a
 /// change), the high-frequency energy ratio (variance of grey − its σ = 2 px blur, over the grey

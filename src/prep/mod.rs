@@ -34,7 +34,7 @@ pub use regularize::RepeatParams;
 
 use grid::{analyze_axis, AxisGrid};
 use image_ops::{blur_gray, blur_rgb, Gray};
-use period::detect_period;
+use period::{detect_period, PitchBaseline};
 
 /// Smallest accepted image side, in pixels.
 pub const MIN_SIZE: u32 = 32;
@@ -135,6 +135,12 @@ pub struct PrepOptions {
     pub min_structure: f32,
     /// Minimum DMF correlation of a copy for it to count as a repeat (else: whole image).
     pub min_period_corr: f32,
+    /// A copy whose correlation is below [`Self::min_period_corr`] still counts as a repeat when
+    /// it exceeds the median correlation of the other yarn-pitch multiples by this much
+    /// ([`period::PitchBaseline`]); 0 disables the relative test.
+    pub min_period_excess: f32,
+    /// Smallest correlation a copy accepted by the relative test may have.
+    pub min_period_corr_relative: f32,
     /// When no repeat is found along either axis, the image is taken as one repeat only if the
     /// grid strength of both axes reaches this; below it the image is rejected with
     /// [`PrepError::NoRepeat`]. Measured on forward-model renders and noise: single repeats whose
@@ -159,6 +165,8 @@ impl Default for PrepOptions {
             repeats: RepeatParams::default(),
             min_structure: 0.35,
             min_period_corr: 0.7,
+            min_period_excess: 0.15,
+            min_period_corr_relative: 0.4,
             min_single_repeat_structure: 0.8,
             min_pitch: 4.0,
             max_photo_yarns: 12,
@@ -331,6 +339,13 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         1.5 * ax0.pitch as f64,
         1.5 * ay0.pitch as f64,
         opts.min_period_corr as f64,
+        [ax0.pitch, ay0.pitch].map(|pitch| {
+            (opts.min_period_excess > 0.0).then_some(PitchBaseline {
+                pitch: pitch as f64,
+                min_excess: opts.min_period_excess as f64,
+                min_corr: opts.min_period_corr_relative as f64,
+            })
+        }),
     );
     // Without a repeat on either axis the whole image is one repeat, which only a strong yarn grid
     // justifies: noise passes the first structure test often enough (its integral projections

@@ -108,7 +108,14 @@ pub fn dmf_rows(g: &Gray, max_lag: usize) -> (Vec<f64>, f64) {
 
 /// Finds the period from a DMF (see module docs). `n` is the signal length, `min_lag` the
 /// smallest admissible period (e.g. ~0.75 pitch).
-pub fn period_from_dmf(dmf: &[f64], var: f64, n: usize, min_lag: f64, min_corr: f64) -> AxisPeriod {
+pub fn period_from_dmf(
+    dmf: &[f64],
+    var: f64,
+    n: usize,
+    min_lag: f64,
+    min_corr: f64,
+    baseline: Option<&PitchBaseline>,
+) -> AxisPeriod {
     let whole = AxisPeriod { period: n as f32, strength: 0.0, repeated: false };
     if var <= 1e-12 || dmf.len() < 4 {
         return whole;
@@ -116,9 +123,16 @@ pub fn period_from_dmf(dmf: &[f64], var: f64, n: usize, min_lag: f64, min_corr: 
     let rho = |d: usize| 1.0 - dmf[d] / (2.0 * var);
     let last = dmf.len() - 2;
     let lo = (min_lag.floor() as usize).max(2);
+    // A minimum qualifies by an absolute correlation, or (with a pitch baseline) by standing out
+    // above the correlation of the pitch multiples that are not its own multiples.
+    let qualifies = |d: usize| -> bool {
+        rho(d) >= min_corr
+            || baseline
+                .is_some_and(|b| rho(d) >= b.min_corr && b.excess(&rho, d, last).is_some_and(|e| e >= b.min_excess))
+    };
     // Local minima with strong correlation, scored by the second difference.
     let cands: Vec<(usize, f64)> = (lo..=last)
-        .filter(|&d| dmf[d] <= dmf[d - 1] && dmf[d] <= dmf[d + 1] && rho(d) >= min_corr)
+        .filter(|&d| dmf[d] <= dmf[d - 1] && dmf[d] <= dmf[d + 1] && qualifies(d))
         .map(|d| (d, dmf[d - 1] - 2.0 * dmf[d] + dmf[d + 1]))
         .collect();
     let Some(&(p0, _)) = cands.iter().max_by(|a, b| a.1.total_cmp(&b.1)) else {
@@ -158,7 +172,8 @@ pub fn period_from_dmf(dmf: &[f64], var: f64, n: usize, min_lag: f64, min_corr: 
         let Some(d) = (lo_t..=hi_t).min_by(|&a, &b| dmf[a].total_cmp(&dmf[b])) else {
             break;
         };
-        if d == lo_t || d == hi_t || rho(d) < min_corr.max(0.7 * strength) {
+        // A multiple of the period must be nearly as strong a copy as the period itself.
+        if d == lo_t || d == hi_t || rho(d) < 0.7 * strength {
             break;
         }
         period = refine(d) / m as f64;
@@ -169,11 +184,69 @@ pub fn period_from_dmf(dmf: &[f64], var: f64, n: usize, min_lag: f64, min_corr: 
 
 /// Periods in x (from rows) and y (from columns) of a grey image. Lags up to 55% of the extent
 /// are searched, so an image needs about two repeats for a repeat to be detected.
-pub fn detect_period(g: &Gray, min_lag_x: f64, min_lag_y: f64, min_corr: f64) -> (AxisPeriod, AxisPeriod) {
+/// `baseline` (x, y) enables the relative test of [`PitchBaseline`].
+pub fn detect_period(
+    g: &Gray,
+    min_lag_x: f64,
+    min_lag_y: f64,
+    min_corr: f64,
+    baseline: [Option<PitchBaseline>; 2],
+) -> (AxisPeriod, AxisPeriod) {
     let (dx, vx) = dmf_rows(g, (g.w as f64 * 0.55) as usize);
     let t = g.transposed();
     let (dy, vy) = dmf_rows(&t, (g.h as f64 * 0.55) as usize);
-    (period_from_dmf(&dx, vx, g.w, min_lag_x, min_corr), period_from_dmf(&dy, vy, g.h, min_lag_y, min_corr))
+    (
+        period_from_dmf(&dx, vx, g.w, min_lag_x, min_corr, baseline[0].as_ref()),
+        period_from_dmf(&dy, vy, g.h, min_lag_y, min_corr, baseline[1].as_ref()),
+    )
+}
+
+/// Relative repeat test: a DMF minimum at lag `d` also counts as a repeat when its correlation
+/// exceeds the *baseline* of the pitch multiples by `min_excess`. On any image of yarns every
+/// multiple `k·pitch` correlates at about 0.5 from the yarn shading alone (measured on renders and
+/// photos, docs/prep.md), so an absolute threshold either admits those partial copies (random
+/// patterns) or refuses the real repeats of photos, whose yarns wander (ρ ≈ 0.5–0.65). The
+/// baseline is the median over the multiples `k·pitch` that are not near a multiple of `d` (those
+/// are copies of the candidate itself) of the highest `ρ` within a tolerance of `k·pitch`.
+#[derive(Clone, Copy, Debug)]
+pub struct PitchBaseline {
+    /// Yarn pitch along the axis, pixels.
+    pub pitch: f64,
+    /// Smallest excess of `ρ(d)` over the baseline.
+    pub min_excess: f64,
+    /// Smallest `ρ(d)` accepted by the relative test at all (noise never gets there).
+    pub min_corr: f64,
+}
+
+impl PitchBaseline {
+    /// `ρ(d)` minus the baseline; `None` with fewer than two pitch multiples to compare with.
+    fn excess(&self, rho: &dyn Fn(usize) -> f64, d: usize, last: usize) -> Option<f64> {
+        let p = self.pitch;
+        if p < 2.0 {
+            return None;
+        }
+        let mut base = Vec::new();
+        let mut k = 1usize;
+        while (k as f64 + 0.3) * p <= last as f64 {
+            let c = k as f64 * p;
+            // The pitch estimate is good to ~2 %: the tolerance grows with k, at least 0.2 pitch.
+            let tol = (0.2 * p).max(0.03 * c);
+            // Skip the candidate's own copies (lags near j·d).
+            let j = (c / d as f64).round();
+            if j < 1.0 || (c - j * d as f64).abs() > tol {
+                let (a, b) = (((c - tol).floor() as usize).max(1), ((c + tol).ceil() as usize).min(last));
+                if let Some(m) = (a..=b).map(rho).max_by(|x, y| x.total_cmp(y)) {
+                    base.push(m);
+                }
+            }
+            k += 1;
+        }
+        if base.len() < 2 {
+            return None;
+        }
+        base.sort_by(|a, b| a.total_cmp(b));
+        Some(rho(d) - base[base.len() / 2])
+    }
 }
 
 #[cfg(test)]
@@ -211,12 +284,50 @@ mod tests {
     #[test]
     fn finds_fractional_period_and_single_repeat() {
         let g = stripes(300, 8, 23.4);
-        let (px, _) = detect_period(&g, 4.0, 4.0, 0.5);
+        let (px, _) = detect_period(&g, 4.0, 4.0, 0.5, [None, None]);
         assert!(px.repeated);
         assert!((px.period - 23.4).abs() < 0.1, "{px:?}");
         // Only ~1.3 repeats: not repeated → whole image.
         let g = stripes(60, 8, 46.0);
-        let (px, _) = detect_period(&g, 4.0, 4.0, 0.5);
+        let (px, _) = detect_period(&g, 4.0, 4.0, 0.5, [None, None]);
         assert!(!px.repeated && px.period == 60.0, "{px:?}");
+    }
+
+    /// Yarns at pitch 12 with a shading profile (every pitch multiple correlates), a per-yarn
+    /// brightness that repeats every `repeat` yarns (or never), and per-pixel noise: the weak true
+    /// repeat (ρ < 0.7) is found by the baseline test only, and a pattern without repeat is not.
+    #[test]
+    fn a_weak_repeat_stands_out_of_the_pitch_baseline() {
+        let hash = |i: u64| -> f32 {
+            let mut z = i.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xD1B5_4A32_D192_ED03;
+            z = (z ^ (z >> 31)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            ((z >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+        };
+        let (w, h, p) = (600usize, 40usize, 12.0f64);
+        let image = |repeat: Option<usize>| {
+            let mut g = Gray::new(w, h);
+            for y in 0..h {
+                for x in 0..w {
+                    let k = (x as f64 / p) as usize;
+                    let yarn = repeat.map_or(k, |r| k % r) as u64;
+                    let shade = 0.3 * (2.0 * std::f64::consts::PI * x as f64 / p).cos() as f32;
+                    g.data[y * w + x] = shade + 0.62 * hash(yarn) + 0.78 * hash(1_000_000 + (y * w + x) as u64);
+                }
+            }
+            g
+        };
+        let base = Some(PitchBaseline { pitch: p, min_excess: 0.15, min_corr: 0.4 });
+        let g = image(Some(5));
+        let (d, v) = dmf_rows(&g, 330);
+        let rho = 1.0 - d[60] / (2.0 * v);
+        assert!(rho > 0.4 && rho < 0.7, "the test needs a weak repeat: ρ(60) = {rho:.3}");
+        let abs = period_from_dmf(&d, v, w, 18.0, 0.7, None);
+        assert!(!abs.repeated, "{abs:?}");
+        let rel = period_from_dmf(&d, v, w, 18.0, 0.7, base.as_ref());
+        assert!(rel.repeated && (rel.period - 60.0).abs() < 1.0, "{rel:?}");
+        let g = image(None);
+        let (d, v) = dmf_rows(&g, 330);
+        let none = period_from_dmf(&d, v, w, 18.0, 0.7, base.as_ref());
+        assert!(!none.repeated, "{none:?}");
     }
 }
