@@ -254,7 +254,11 @@ fn edge_lattice_score(g: &Gray, angle_deg: f64) -> f64 {
 fn rescore_by_edges(g: &Gray, angles: &[f64], total: &[f64], k: usize) -> usize {
     let tmax = total[k];
     let peaks: Vec<usize> = (1..total.len().saturating_sub(1))
-        .filter(|&i| i != k && total[i] >= total[i - 1] && total[i] >= total[i + 1] && total[i] >= 0.7 * tmax)
+        .filter(|&i| {
+            i != k
+                && ((total[i] >= total[i - 1] && total[i] >= total[i + 1] && total[i] >= 0.7 * tmax)
+                    || angles[i].abs() < 1e-9)
+        })
         .collect();
     if peaks.is_empty() {
         return k;
