@@ -202,7 +202,8 @@ pub fn dominant_angle(g: &Gray) -> (f64, f32) {
     // What only the yarn axes have is straight yarn *boundaries*: the log-edge energy across each
     // axis has a strong fundamental at the yarn pitch ([`grid::edge_grid`]), while along a diagonal
     // the boundaries are staircases. Every coarse Radon peak within 70 % of the best is rescored by
-    // the weaker axis's edge fundamental, and the best is replaced only by a clearly better one.
+    // the weaker axis's edge fundamental (0° too), and the best is replaced only by a clearly
+    // better one.
     let k = rescore_by_edges(g, &angles, &total, k);
     let a0 = angles[k];
     // Fine: ±1° in 0.05° steps on the largest disc, same normalised sum, parabolic peak.
@@ -249,12 +250,16 @@ fn edge_lattice_score(g: &Gray, angle_deg: f64) -> f64 {
 }
 
 /// Index of the coarse angle kept: the Radon best `k`, unless another local maximum of `total`
-/// within 70 % of it has an [`edge_lattice_score`] at least 1.5× as high and above
+/// within 70 % of it, or 0° (a close-up is taken roughly aligned, whatever its Radon score), has an [`edge_lattice_score`] at least 1.5× as high and above
 /// [`grid::MIN_EDGE_CONFIDENCE`] (see `dominant_angle`).
 fn rescore_by_edges(g: &Gray, angles: &[f64], total: &[f64], k: usize) -> usize {
     let tmax = total[k];
     let peaks: Vec<usize> = (1..total.len().saturating_sub(1))
-        .filter(|&i| i != k && total[i] >= total[i - 1] && total[i] >= total[i + 1] && total[i] >= 0.7 * tmax)
+        .filter(|&i| {
+            i != k
+                && ((total[i] >= total[i - 1] && total[i] >= total[i + 1] && total[i] >= 0.7 * tmax)
+                    || angles[i].abs() < 1e-9)
+        })
         .collect();
     if peaks.is_empty() {
         return k;
