@@ -6,7 +6,7 @@
 //! variant, a polish of the best — and the best warmed-up candidates, each after a greedy cell
 //! sweep, become the starts.
 
-use super::candidates::{best_variant, greedy_sweeps, rank_candidates};
+use super::candidates::{best_variant, greedy_sweeps, inverted_twin, rank_candidates};
 use super::colours::{estimate_colours, pattern_loss};
 use super::evaluator::{state_loss, Evaluator};
 use super::options::PreOptions;
@@ -98,15 +98,52 @@ pub(crate) fn pre_estimate(
     }
     st.control.progress.finish();
     warm.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let warmed: Vec<ClothParams> = warm.iter().map(|w| w.1.clone()).collect();
+    let mut warmed: Vec<ClothParams> = warm.iter().map(|w| w.1.clone()).collect();
     let mut starts = choose_starts(warm, opts.starts, opts.start_margin);
     if st.cells {
         for s in starts.iter_mut() {
             greedy_sweeps(st.ev, s, opts.max_sweeps, stop, state_loss);
         }
     }
+    if st.cells {
+        if let Some(first) = starts.first_mut() {
+            let (_, won, lost) = twin_contest(st.ev, first, opts.warmup, stop);
+            *first = won;
+            warmed.push(lost);
+        }
+    }
     let initial = starts.first().cloned().unwrap_or(cloth);
     Ok(PreEstimate { starts, warmed, initial })
+}
+
+/// The contest of `cloth` against its inverted twin (pattern inverted, the families' body colours
+/// and radii swapped: `candidates::inverted_twin`), each given the same short polish
+/// (`iters` Levenberg–Marquardt iterations of the appearance around a Newton step of the radii).
+/// For a plain weave the inverse is the same weave shifted by one cell, so the twin lays the same
+/// colours on the same cells and differs only in which way each yarn runs: the two states are
+/// near-equal minima, and which one the warm-up reaches depends on pixel-level details of the crop
+/// (an edge a pixel off). Deciding it here, on the image, before the view is settled on the
+/// pre-estimate (`fit_view`) and the joint runs adapt to it, keeps the choice from being an
+/// accident of the start. Costs two polishes. Returns the winner's loss, the winner and the loser
+/// (a rival for the finish); a twin in which a yarn floats is not a weave and loses.
+pub(crate) fn twin_contest(
+    ev: &Evaluator,
+    cloth: &ClothParams,
+    iters: usize,
+    stop: &AtomicBool,
+) -> (f32, ClothParams, ClothParams) {
+    let mut own = cloth.clone();
+    let lo = refine::polish(ev, &mut own, WARMUP_ROUNDS, iters, stop);
+    let mut twin = inverted_twin(cloth);
+    if twin.pattern.has_unbound_yarn() {
+        return (lo, own, twin);
+    }
+    let lt = refine::polish(ev, &mut twin, WARMUP_ROUNDS, iters, stop);
+    if lt < lo {
+        (lt, twin, own)
+    } else {
+        (lo, own, twin)
+    }
 }
 
 /// Fraction of the model's brightest cell brightness (see [`exposure_for`]) that a target's
@@ -340,6 +377,40 @@ mod tests {
         assert_eq!(choose_starts(warm.clone(), 2, 5.0).len(), 2);
         assert_eq!(choose_starts(warm, 0, 5.0).len(), 1);
         assert!(choose_starts(Vec::new(), 2, 0.15).is_empty());
+    }
+
+    #[test]
+    fn the_twin_contest_turns_a_swapped_start_back_to_the_truth() {
+        use crate::fit::demo::demo_cloth;
+        use crate::render::{Prepared, RenderOptions};
+        use crate::scene::LightRig;
+        // Plain weave with two distinct families and radii, as in a render whose fit came back
+        // inverted with the colours swapped.
+        let mut truth = demo_cloth();
+        truth.pattern = WeavePattern::from_rows_unreduced(&[vec![true, false], vec![false, true]]).unwrap();
+        truth.appearance.r_b_e = [0.8, 0.6, 0.1];
+        truth.appearance.r_b_a = [0.25, 0.08, 0.35];
+        (truth.r_e, truth.r_a) = (4.5, 3.5);
+        let (n_e, n_a, c) = (truth.pattern.n_e(), truth.pattern.n_a(), 12);
+        let scene = fit_scene(n_e, n_a, c, 2, 1, &LightRig::default_rig());
+        let target = Prepared::new(&truth, &scene, &RenderOptions::default()).render(&truth.appearance);
+        let ev = Evaluator::new(scene, target, 2);
+        let stop = AtomicBool::new(false);
+        let swapped = inverted_twin(&truth);
+        let mut start = swapped.clone();
+        let start_loss = refine::polish(&ev, &mut start, WARMUP_ROUNDS, 8, &stop);
+        let (loss, won, lost) = twin_contest(&ev, &swapped, 8, &stop);
+        assert_eq!(won.pattern, truth.pattern, "the swapped state stayed: {}", won.pattern);
+        assert_eq!(lost.pattern, swapped.pattern);
+        assert!(loss < start_loss, "{loss} >= {start_loss}");
+        // The families' colours are back in their places: warp yellow, weft purple.
+        let dist = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum::<f32>();
+        let a = &won.appearance;
+        assert!(dist(a.r_b_e, truth.appearance.r_b_e) < dist(a.r_b_e, truth.appearance.r_b_a), "{:?}", a.r_b_e);
+        assert!(dist(a.r_b_a, truth.appearance.r_b_a) < dist(a.r_b_a, truth.appearance.r_b_e), "{:?}", a.r_b_a);
+        assert!(won.r_e > won.r_a, "radii {} {}", won.r_e, won.r_a);
+        // Started from the truth, the contest keeps it.
+        assert_eq!(twin_contest(&ev, &truth, 8, &stop).1.pattern, truth.pattern);
     }
 
     #[test]
