@@ -164,6 +164,10 @@ where
 /// lights' own radiance is kept for them.
 const MIN_BACKDROP_COVERAGE: f32 = 1e-3;
 
+/// Per pixel, the fraction of camera samples that missed the cloth and what they added
+/// ([`PathCache::misses`]).
+type Misses = (Vec<f32>, Vec<[f32; 3]>);
+
 /// Candidate values of the grid search of [`solve_backdrop`] before its golden-section polish.
 const BACKDROP_GRID: usize = 25;
 
@@ -196,30 +200,22 @@ fn solve_backdrop(
         .filter(|(_, px)| px.iter().any(|&p| cov[p] > 1e-6))
         .collect();
     let inv = blocks.weight();
-    let lights_loss: f32 = touched
-        .iter()
-        .map(|(o, px)| {
-            (0..3)
-                .map(|k| {
-                    let v: f32 = px.iter().map(|&p| (cloth[p][k] + lights[p][k]).clamp(0.0, 1.0) * inv).sum();
-                    (linear_to_srgb(v) - target[*o][k]).powi(2)
-                })
-                .sum::<f32>()
-        })
-        .sum();
+    // Loss of channel `k` over the blocks that see a gap, for the linear pixel values `value(p, k)`.
+    let loss_of = |k: usize, value: &dyn Fn(usize) -> f32| -> f32 {
+        touched
+            .iter()
+            .map(|(o, px)| {
+                let v: f32 = px.iter().map(|&p| value(p).clamp(0.0, 1.0) * inv).sum();
+                (linear_to_srgb(v) - target[*o][k]).powi(2)
+            })
+            .sum()
+    };
+    let lights_loss: f32 = (0..3).map(|k| loss_of(k, &|p| cloth[p][k] + lights[p][k])).sum();
     let mut beta = [0.0f32; 3];
     let mut beta_loss = 0.0f32;
     let at = |i: f32| BACKDROP_MAX * (i / (BACKDROP_GRID - 1) as f32).powi(2);
     for (k, bk) in beta.iter_mut().enumerate() {
-        let loss = |b: f32| -> f32 {
-            touched
-                .iter()
-                .map(|(o, px)| {
-                    let v: f32 = px.iter().map(|&p| (cloth[p][k] + b * cov[p]).clamp(0.0, 1.0) * inv).sum();
-                    (linear_to_srgb(v) - target[*o][k]).powi(2)
-                })
-                .sum()
-        };
+        let loss = |b: f32| loss_of(k, &|p| cloth[p][k] + b * cov[p]);
         let grid: Vec<f32> = (0..BACKDROP_GRID).map(|i| loss(at(i as f32))).collect();
         let best = (0..BACKDROP_GRID).min_by(|&i, &j| grid[i].total_cmp(&grid[j])).unwrap_or(0);
         // Golden-section search on the two grid intervals around the best grid point.
@@ -380,16 +376,10 @@ impl Evaluator {
     /// blurred alike), so it is solved at every evaluation, like a nuisance parameter. At the
     /// solved β the loss is stationary in β (up to its bounds), so the gradient with β held
     /// fixed is the gradient of the loss minimised over β (the envelope theorem).
-    fn solve_backdrop_for(
-        &self,
-        raw: &[[f32; 3]],
-        w: u32,
-        h: u32,
-        misses: &(Vec<f32>, Vec<[f32; 3]>),
-    ) -> Option<[f32; 3]> {
+    fn solve_backdrop_for(&self, raw: &[[f32; 3]], w: u32, h: u32, misses: &Misses) -> Option<[f32; 3]> {
         let (cov, rad) = misses;
         let n = cov.len().max(1) as f32;
-        if !self.backdrop || cov.iter().sum::<f32>() / n < MIN_BACKDROP_COVERAGE {
+        if cov.iter().sum::<f32>() / n < MIN_BACKDROP_COVERAGE {
             return None;
         }
         let mut cloth: Vec<[f32; 3]> =
@@ -410,8 +400,29 @@ impl Evaluator {
     /// [`Evaluator::shaded`]); `None` where too few samples see through the cloth or the lights
     /// explain what they see.
     pub(crate) fn backdrop(&self, cache: &PathCache, a: &Appearance) -> Option<[f32; 3]> {
+        if !self.backdrop {
+            return None;
+        }
         let img = cache.shade(a);
-        self.solve_backdrop_for(&img.data, img.width, img.height, &cache.misses())
+        self.backdrop_with_misses(cache, &img.data, img.width, img.height).map(|(beta, _)| beta)
+    }
+
+    /// The backdrop solved for the recorded paths `cache` whose render is `values`
+    /// (`solve_backdrop_for`), with the `(coverage, radiance)` of [`PathCache::misses`] it was
+    /// solved from; `None` without a solved backdrop. The misses are gathered only when the
+    /// backdrop is on ([`Evaluator::with_backdrop`]), so fits without it pay nothing for it.
+    fn backdrop_with_misses(
+        &self,
+        cache: &PathCache,
+        values: &[[f32; 3]],
+        w: u32,
+        h: u32,
+    ) -> Option<([f32; 3], Misses)> {
+        if !self.backdrop {
+            return None;
+        }
+        let misses = cache.misses();
+        self.solve_backdrop_for(values, w, h, &misses).map(|beta| (beta, misses))
     }
 
     /// The recorded paths `cache` shaded with `a`, with the samples that miss the cloth seeing the
@@ -419,9 +430,8 @@ impl Evaluator {
     /// loss compares, before the blur of [`Evaluator::observe`].
     pub(crate) fn shaded(&self, cache: &PathCache, a: &Appearance) -> Image {
         let mut img = cache.shade(a);
-        let misses = cache.misses();
-        if let Some(beta) = self.solve_backdrop_for(&img.data, img.width, img.height, &misses) {
-            for ((p, c), r) in img.data.iter_mut().zip(&misses.0).zip(&misses.1) {
+        if let Some((beta, (cov, rad))) = self.backdrop_with_misses(cache, &img.data, img.width, img.height) {
+            for ((p, c), r) in img.data.iter_mut().zip(&cov).zip(&rad) {
                 (0..3).for_each(|k| p[k] += beta[k] * c - r[k]);
             }
         }
@@ -460,10 +470,14 @@ impl Evaluator {
         let mut px = cache.shade_with_derivatives(a);
         // The backdrop seen through the gaps, solved on the values and held fixed in the
         // derivatives (see `solve_backdrop_for`: the envelope theorem).
-        let misses = cache.misses();
-        let values: Vec<[f32; 3]> = px.iter().map(|p| p.map(|d| d.v)).collect();
-        if let Some(beta) = self.solve_backdrop_for(&values, w, h, &misses) {
-            for ((p, c), r) in px.iter_mut().zip(&misses.0).zip(&misses.1) {
+        let solved = if self.backdrop {
+            let values: Vec<[f32; 3]> = px.iter().map(|p| p.map(|d| d.v)).collect();
+            self.backdrop_with_misses(cache, &values, w, h)
+        } else {
+            None
+        };
+        if let Some((beta, (cov, rad))) = solved {
+            for ((p, c), r) in px.iter_mut().zip(&cov).zip(&rad) {
                 (0..3).for_each(|k| p[k] = p[k] + (beta[k] * c - r[k]));
             }
         }
@@ -670,7 +684,8 @@ mod tests {
         // varies per sample (ambient, back-light disc), which no single colour matches as well.
         let lit =
             Evaluator::new(scene.clone(), ev.observe(&crate::render::render(&cloth, &scene, &Default::default())), 2)
-                .with_blur(0.8);
+                .with_blur(0.8)
+                .with_backdrop(true);
         assert_eq!(lit.backdrop(&cache, &cloth.appearance), None);
         // Where (almost) no sample sees through the cloth, no backdrop is solved.
         let img = cache.shade(&cloth.appearance);
