@@ -6,6 +6,7 @@
 //! parameters that changes shading only (no re-tracing); the yarn radii and the discrete `n_p`,
 //! `n_f`, `P` change geometry.
 
+use crate::geometry::yarn::YarnShape;
 use crate::pattern::WeavePattern;
 use crate::scene::Scene;
 use serde::{Deserialize, Serialize};
@@ -114,6 +115,11 @@ pub struct ClothParams {
     /// pattern tile. Absent: uniform colour per yarn family.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub body_texture: Option<BodyTexture>,
+    /// Yarn cross-section: crossing depth (fraction of touching, [0.3, 1], default 0.7) and
+    /// flattening (half-height / half-width, [0.33, 1], default 1 = round). Absent from files that
+    /// keep the defaults (docs/design.md §1.1).
+    #[serde(default, skip_serializing_if = "YarnShape::is_default")]
+    pub shape: YarnShape,
 }
 
 /// Body-colour texture maps (multipliers of the family's `R^B` and `S^B`), one per yarn family,
@@ -491,6 +497,9 @@ impl ClothParams {
         if let Some(t) = &self.body_texture {
             t.validate()?;
         }
+        let (c, a) = (YarnShape::CROSSING_RANGE, YarnShape::ASPECT_RANGE);
+        check_range("shape.crossing", self.shape.crossing as f64, c.0 as f64, c.1 as f64)?;
+        check_range("shape.aspect", self.shape.aspect as f64, a.0 as f64, a.1 as f64)?;
         self.appearance.validate()
     }
 
@@ -568,6 +577,7 @@ impl ClothParams {
             r_a: 4.2,
             appearance: Appearance::default(),
             body_texture: None,
+            shape: YarnShape::default(),
         })
     }
 }

@@ -209,6 +209,15 @@ pub struct Scene {
     /// (`fit::evaluator`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub backdrop: Option<Rgb>,
+    /// Filter fiber and ply detail smaller than a pixel by the pixel's footprint (docs/design.md
+    /// §1.4; default on). Off: every sample sees the exact fiber under it, as before session 7;
+    /// detail above half a pixel per period renders the same either way.
+    #[serde(skip_serializing_if = "is_true")]
+    pub footprint_filter: bool,
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 impl Default for Scene {
@@ -222,6 +231,7 @@ impl Default for Scene {
             lights: LightRig::default_rig(),
             exposure: 1.0,
             backdrop: None,
+            footprint_filter: true,
         }
     }
 }

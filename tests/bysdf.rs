@@ -95,3 +95,28 @@ proptest! {
         }
     }
 }
+
+/// The case CI's random search found (albedo 1.107 ± 0.016): a rough white vertex seen from inside
+/// the yarn, where tilted microfacets reach total internal reflection, so the specular reflection
+/// sends back far more than the macro-surface Fresnel factor that used to size the body lobes.
+#[test]
+fn rough_vertex_seen_from_inside_does_not_create_energy() {
+    let mut a = appearance(&[0.0; 30], 2);
+    a.m_r = 0.2;
+    a.r_s = [1.0; 3];
+    a.r_b_e = [1.0; 3];
+    a.s_b_e = [1.0; 3];
+    a.alpha_s = 0.162;
+    a.eta_s = 1.591;
+    a.g_p = 0.0;
+    a.g_f = 0.0;
+    let p = ShadeParams::new(&a);
+    for theta in [0.1f32, 0.5, 0.9, 1.2, 1.5] {
+        let v = Vec3::new(theta.sin(), 0.0, -theta.cos());
+        let mut rng = SmallRng::seed_from_u64(7);
+        let est = albedo(&p, VertexKind::X, Family::Weft, v, (1.0, 1.0), 20000, &mut rng);
+        for k in 0..3 {
+            assert!(est.mean[k] <= 1.0 + 3.0 * est.stderr[k] + 1e-3, "θ={theta}: {:?} ± {:?}", est.mean, est.stderr);
+        }
+    }
+}

@@ -45,6 +45,7 @@ fn two_colour_cloth(pattern: &str) -> ClothParams {
         r_a: 4.2,
         appearance: a,
         body_texture: None,
+        shape: Default::default(),
     }
 }
 
@@ -305,4 +306,39 @@ fn svcolor_fits_a_striped_cloth_better() {
     assert!(dark < 0.85 * light, "stripes not recovered: dark rows {dark:.2}, light rows {light:.2}");
     assert!(sv.psnr_db >= plain.psnr_db - 0.1, "svcolor {:.2} dB vs plain {:.2} dB", sv.psnr_db, plain.psnr_db);
     sv.params.validate().unwrap();
+}
+
+/// Issue 13: a multi-repeat render of a two-colour plain weave whose frame starts half a cell off
+/// the yarn grid, through preparation. A plain weave and its inverted twin (pattern inverted,
+/// families swapped) lay the same colours on the same cells, so a crop placed half a cell off
+/// made the fit settle on the twin: the right weave with the families' colours exchanged. Both
+/// framings (on the grid and half a cell off each way) must give the weft its red and the warp
+/// its blue.
+#[test]
+fn a_plain_weave_framed_half_a_cell_off_keeps_its_families_colours() {
+    let truth = two_colour_cloth("10/01");
+    let (n_e, n_a, c, tiles) = (2usize, 2usize, 16u32, 4.0f32);
+    for half in [0.0f32, 0.25] {
+        let mut scene = fit_scene(n_e, n_a, c, 16, 5, &woven::scene::LightRig::default_rig());
+        scene.width = (tiles * (n_a as u32 * c) as f32) as u32;
+        scene.height = (tiles * (n_e as u32 * c) as f32) as u32;
+        scene.camera.tiles = tiles;
+        // The view's centre, in repeats: a quarter of a 2×2 repeat is half a cell.
+        scene.camera.offset = [0.5 * tiles + half, 0.5 * tiles + half];
+        let photo = woven::render::render(&truth, &scene, &Default::default());
+        let mut opts = small_opts();
+        opts.input.prep = true;
+        opts.render.px_per_cell = 12;
+        opts.joint.iterations = 30;
+        let res = fit(&photo, &opts).unwrap_or_else(|e| panic!("offset {half}: {e:#}"));
+        assert!(res.params.cloth.pattern.equivalent(&truth.pattern), "offset {half}: fit {}", res.params.cloth.pattern);
+        let a = &res.cloth.appearance;
+        assert!(
+            a.r_b_e[0] > a.r_b_e[2] + 0.3 && a.r_b_a[2] > a.r_b_a[0] + 0.3,
+            "offset {half}: families' colours exchanged or lost: weft {:?}, warp {:?} (phase shift {:?})",
+            a.r_b_e,
+            a.r_b_a,
+            res.phase_shift
+        );
+    }
 }

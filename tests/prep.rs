@@ -17,11 +17,15 @@ fn basket_weave_grid() {
 
 fn rendered(preset: &str, repeats: f32, size: u32, rot: f32) -> Image {
     let cloth = ClothParams::preset(preset).unwrap();
-    let mut scene =
-        Scene { width: size, height: size, spp: 2, lights: LightRig::named("front").unwrap(), ..Scene::default() };
+    render_view(&cloth, LightRig::named("front").unwrap(), size, 2, repeats, rot)
+}
+
+/// Renders `cloth` square at `size` px under `lights`, `repeats` repeats across, rotated by `rot`.
+fn render_view(cloth: &ClothParams, lights: LightRig, size: u32, spp: u32, repeats: f32, rot: f32) -> Image {
+    let mut scene = Scene { width: size, height: size, spp, lights, ..Scene::default() };
     scene.camera.tiles = repeats;
     scene.camera.rotation_deg = rot;
-    render(&cloth, &scene, &RenderOptions::default())
+    render(cloth, &scene, &RenderOptions::default())
 }
 
 #[test]
@@ -190,6 +194,53 @@ fn a_twill_render_is_not_rotated_to_its_lattice_diagonal() {
     let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
     assert!(p.angle_deg.abs() < 0.5, "angle {}", p.angle_deg);
     assert_eq!((p.n_e, p.n_a), (4, 4));
+}
+
+/// Renders `pattern` (text rows) under the default rig (ambient, front, back and two sides: what
+/// `woven eval`'s photo path uses) with `repeats` repeats across 256 px, rotated by `rot`.
+fn rendered_rig(pattern: &str, repeats: f32, rot: f32) -> Image {
+    let mut cloth = ClothParams::preset("plain").unwrap();
+    cloth.pattern = pattern.parse().unwrap();
+    render_view(&cloth, LightRig::default_rig(), 256, 4, repeats, rot)
+}
+
+/// Under the default rig every pitch multiple of a render correlates at 0.9 or more in the pixel
+/// distance matching function (yarn shading, gaps and crossings are shared by every cell), and the
+/// repeat picked by its second difference was wrong: a 2×2-block basket came out 7×7, a 3×5
+/// pattern 3×3, a 2/2 twill as the 2×2 half-twill lattice, a random 5×5 at 2.6 repeats was
+/// refused. The repeat read from the cells (which yarn is on top, `prep::cells`) gives each.
+#[test]
+fn the_repeat_of_rig_lit_renders_comes_from_the_cells() {
+    let cases = [
+        ("basket 2x2 blocks", "1100/1100/0011/0011", 3.2, -2.8),
+        ("3x5", "11010/10101/01011", 2.8, 5.6),
+        ("twill 2/2", "1100/0110/0011/1001", 3.4, -7.5),
+        ("random 5x5", "10010/00110/01011/11110/11000", 2.6, 4.3),
+        ("3x3", "110/011/101", 4.4, 5.3),
+    ];
+    let mut failures = Vec::new();
+    for (name, pat, repeats, rot) in cases {
+        let want: woven::WeavePattern = pat.parse().unwrap();
+        let img = rendered_rig(pat, repeats, rot);
+        match prepare(&img.to_rgb32f(), &PrepOptions::default()) {
+            Ok(p) if (p.n_e, p.n_a) == (want.n_e(), want.n_a()) => {}
+            Ok(p) => failures.push(format!("{name}: {}×{} (want {}×{})", p.n_e, p.n_a, want.n_e(), want.n_a())),
+            Err(e) => failures.push(format!("{name}: {e}")),
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// A yarn-dyed plain weave (microscope photo, blue and white wefts in stripes wider than the
+/// photo): the intensity does not repeat along y inside the photo, so the whole height became
+/// the repeat (6×2). The cell value is the orientation of the log-luminance gradient, blind to the
+/// yarn's colour, and the weave repeats every 2 yarns.
+#[test]
+fn a_yarn_dyed_plain_photo_is_two_by_two() {
+    let Some(path) = shared_file("data/real/microscope/plain_a.jpg") else { return };
+    let img = Image::load(&path, 32).unwrap();
+    let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
+    assert_eq!((p.n_e, p.n_a), (2, 2));
 }
 
 /// Sharpness of prepared crops, for docs/prep.md: for every `<dir>/<name>/crop.png` of the

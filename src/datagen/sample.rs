@@ -211,8 +211,16 @@ impl Recipe {
             let base = r.name.split('[').next().expect("name");
             v[k] = draw_f32(&mut rng, &pr.span(base)).clamp(r.min, r.max);
         }
-        let cloth =
-            ClothParams { pattern, n_p, n_f, r_e, r_a, appearance: Appearance::from_slice(&v), body_texture: None };
+        let cloth = ClothParams {
+            pattern,
+            n_p,
+            n_f,
+            r_e,
+            r_a,
+            appearance: Appearance::from_slice(&v),
+            body_texture: None,
+            shape: Default::default(),
+        };
 
         // Camera: the fit's orthographic top-down view (`fit_scene`) at `px_per_cell` pixels per
         // cell, `cells` cells across. The view centre sits on a cell corner, moved by a random
@@ -277,6 +285,8 @@ impl Recipe {
             lights: rig,
             exposure,
             backdrop: None,
+            // The shipped training set was rendered without footprint filtering: keep it bit for bit.
+            footprint_filter: false,
         };
 
         cloth.validate().map_err(|e| anyhow::anyhow!("sample {index}: drawn cloth is invalid: {e}"))?;

@@ -32,7 +32,16 @@ pub fn demo_cloth() -> ClothParams {
         g_p: 0.5,
         g_f: 0.35,
     };
-    ClothParams { pattern, n_p: 4, n_f: 36, r_e: 4.4, r_a: 3.8, appearance, body_texture: None }
+    ClothParams {
+        pattern,
+        n_p: 4,
+        n_f: 36,
+        r_e: 4.4,
+        r_a: 3.8,
+        appearance,
+        body_texture: None,
+        shape: Default::default(),
+    }
 }
 
 /// Render a synthetic one-repeat target of `cloth` at `c` px per cell under the default rig
@@ -81,6 +90,7 @@ pub fn random_cloth(rng: &mut StdRng, max_side: usize) -> ClothParams {
         r_a: rng.random_range(MIN_RANDOM_RADIUS..=PARAMS[param::R_A].max),
         appearance: Appearance::from_slice(&v),
         body_texture: None,
+        shape: Default::default(),
     }
 }
 

@@ -52,6 +52,7 @@ pub mod real;
 mod refine;
 pub mod renders;
 pub mod report;
+mod shape_extra;
 pub mod target;
 mod texture;
 
@@ -205,6 +206,8 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
     if !joint.stopped {
         finish::polish_winner(&st, &opts.finish, &mut cloth);
+        // Optional yarn shape (crossing depth, flattening), kept only where it pays (shape_extra.rs).
+        shape_extra::fit_shape(&ev, &mut cloth);
         if opts.finish.svcolor > 0 {
             cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
         }

@@ -37,7 +37,16 @@ pub fn grey_appearance() -> Appearance {
 
 /// The cloth the fit starts from: `pattern`, 3 plies of 30 fibers, radii 4, grey appearance.
 pub(crate) fn default_cloth(pattern: WeavePattern) -> ClothParams {
-    ClothParams { pattern, n_p: 3, n_f: 30, r_e: 4.0, r_a: 4.0, appearance: grey_appearance(), body_texture: None }
+    ClothParams {
+        pattern,
+        n_p: 3,
+        n_f: 30,
+        r_e: 4.0,
+        r_a: 4.0,
+        appearance: grey_appearance(),
+        body_texture: None,
+        shape: Default::default(),
+    }
 }
 
 /// What the pre-estimation hands on.
@@ -177,8 +186,13 @@ pub(crate) fn exposure_for(target: &Image, cloth: &ClothParams, scene: &Scene, c
 }
 
 /// Blur factors (of the preparation's σ) that [`fit_view`] tries: a photo adds its own lens and
-/// focus blur, and the rectification's resampling adds some, on top of the preparation's.
-const VIEW_BLURS: [f32; 3] = [1.0, 1.5, 2.0];
+/// focus blur, and the rectification's resampling and the regularization's averaging of repeats
+/// add some, on top of the preparation's. The range reaches 4× (a quarter of a pitch): an image
+/// whose yarns are smooth tubes (another renderer's, a soft photo) shows none of the ply and fibre
+/// stripes the model draws, and the blur that explains their absence best is what the fit must
+/// compare through, or the stripes dominate its error and drown the pattern's and the colours'
+/// signal.
+const VIEW_BLURS: [f32; 6] = [1.0, 1.5, 2.0, 2.5, 3.0, 4.0];
 
 /// Largest shift (target pixels, each axis) that [`fit_view`] tries around the edge-based phase.
 const VIEW_SHIFT: i32 = 2;

@@ -208,7 +208,8 @@ impl PlyModel {
 
     /// Does the line through `q` along `d` cross any ply of `yarn` (ply visibility `V_p`, docs/design.md §1.7)?
     pub fn blocks(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
-        self.intersect(yarn, q, d, true).is_some()
+        let (ds, _) = yarn.dir_to_round(d);
+        self.intersect(yarn, yarn.to_round(q), ds, true).is_some()
     }
 
     /// Ply intersection in the yarn's normal cross-section at `q` (projected ray, docs/design.md §1.3).
@@ -283,7 +284,31 @@ impl PlyModel {
 
     /// Full ply/fiber mapping at a tube point: ply hit, fiber shading frame, AO values.
     pub fn map(&self, yarn: &YarnCurve, q: Vec3, d: Vec3, entry: bool) -> Option<PlyHit> {
-        let l = self.intersect(yarn, q, d, entry)?;
+        self.map_filtered(yarn, q, d, entry, None)
+    }
+
+    /// [`PlyModel::map`] for a camera sample whose pixel covers `footprint = (w, u)`: `w` world
+    /// units on the cloth, `u` ∈ [0, 1) the sample's stratum of the fiber phase (docs/design.md
+    /// §1.4, after the pixel-coverage idea of \[Khattar24\]). Where the footprint, stretched by the
+    /// view's foreshortening, spans at least one fiber period of the table, the pixel's average is
+    /// the angular average of the fiber table; the sample then reads the table at phase
+    /// `θ_f = 2π(u + i)/n_f` (fiber `i` of the visible ply's ring) instead of the phase under the
+    /// sample's exact position. Both are unbiased estimates of the pixel's mean, but the pixel's
+    /// `spp` samples then cover the fiber period in strata instead of at random, and fibers below a
+    /// pixel no longer show as sampling noise or moiré hatches. Below one period per footprint
+    /// (fibers resolved) the mapping is [`PlyModel::map`] bit for bit.
+    pub fn map_filtered(
+        &self,
+        yarn: &YarnCurve,
+        q: Vec3,
+        d: Vec3,
+        entry: bool,
+        footprint: Option<(f32, f32)>,
+    ) -> Option<PlyHit> {
+        // Flattened yarns: the mapping runs in the stretched space where the tube is round, and
+        // the frame comes back through the map (world `t`: divide by `|S d|`).
+        let (d, len) = yarn.dir_to_round(d);
+        let l = self.intersect(yarn, yarn.to_round(q), d, entry)?;
         let f = l.frame;
         let n2 = (l.hit - l.centre).normalize_or(Vec2::Y);
         let ply_t = (f.t + (f.ey * l.beta_dir.x - f.ex * l.beta_dir.y) * (l.ring * l.kappa)).normalize();
@@ -299,7 +324,19 @@ impl PlyModel {
         let u_p = n2.y.atan2(n2.x) - l.beta;
         let ell_p = f.arc * (1.0 + (l.ring * l.kappa).powi(2)).sqrt();
         let kappa_f = l.kappa_f;
-        let theta_f = u_p + kappa_f * ell_p;
+        let mut theta_f = u_p + kappa_f * ell_p;
+        if let Some((w, u)) = footprint.filter(|f| f.0 > 0.0) {
+            // θ_f changes by 1/r_p per unit length around the ply (foreshortened by the view, the
+            // cosine floored at 0.2) and by κ_f along it: the footprint spans |∇θ_f|·w radians.
+            let cos = d.dot(np).abs().max(0.2);
+            let grad = ((1.0 / (l.rp.max(1e-6) * cos)).powi(2) + kappa_f * kappa_f).sqrt();
+            let period = TAU / self.n_f.clamp(2, 64) as f32;
+            if w * grad >= period {
+                // Keep the fiber index under the sample (the table's fibers differ in depth) and
+                // take the phase inside it from the stratum.
+                theta_f = (super::bspline::floor_fast(theta_f / period) + u) * period;
+            }
+        }
         let fib = fiber_table(self.n_f);
         let pert = CrossSection::lookup(&fib.pert, theta_f);
         let ao_f = CrossSection::lookup(&fib.ao, theta_f);
@@ -308,6 +345,10 @@ impl PlyModel {
         let tangent = (ply_t + circ * (rf * l.rp * kappa_f)).normalize();
         let n0 = (np - tangent * np.dot(tangent)).normalize_or(np);
         let normal = (Quat::from_axis_angle(tangent, pert) * n0).normalize();
+        if yarn.aspect != 1.0 {
+            let (normal, tangent) = (yarn.normal_to_world(normal), yarn.tangent_to_world(tangent));
+            return Some(PlyHit { t: l.t / len, crossed: l.crossed, normal, tangent, ao_p, ao_f });
+        }
         Some(PlyHit { t: l.t, crossed: l.crossed, normal, tangent, ao_p, ao_f })
     }
 }

@@ -152,9 +152,13 @@ impl TileGeometry {
         self.caps.len()
     }
 
-    /// Top of the cloth slab.
+    /// Top of the cloth slab (world).
     pub fn z_top(&self) -> f32 {
-        self.z_hi
+        if self.set.shape.aspect == 1.0 {
+            self.z_hi
+        } else {
+            self.z_hi * self.set.shape.aspect
+        }
     }
 
     /// Wrap a point into the tile `[0, X) × [0, Y)`.
@@ -162,9 +166,23 @@ impl TileGeometry {
         Vec3::new(wrap_coord(p.x, self.set.tile_x), wrap_coord(p.y, self.set.tile_y), p.z)
     }
 
-    /// Closest tube entry along `o + t·d` (unit `d`), `t > 0`. `skip = (yarn, t)` ignores entries of
-    /// that yarn closer than `t` (a ray just leaving that yarn).
+    /// Closest tube entry along `o + t·d` (unit `d`, world), `t > 0`. `skip = (yarn, t)` ignores
+    /// entries of that yarn closer than `t` (a ray just leaving that yarn). Flattened yarns
+    /// ([`crate::geometry::yarn::YarnShape`]) are traced as round tubes in the stretched space;
+    /// `t` and the hit point come back in the world.
     pub fn closest(&self, o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> Option<TubeHit> {
+        let a = self.set.shape.aspect;
+        if a == 1.0 {
+            return self.closest_round(o, d, skip);
+        }
+        let s = Vec3::new(d.x, d.y, d.z / a);
+        let len = s.length();
+        let hit = self.closest_round(Vec3::new(o.x, o.y, o.z / a), s / len, skip.map(|(y, t)| (y, t * len)))?;
+        Some(TubeHit { t: hit.t / len, p: Vec3::new(hit.p.x, hit.p.y, hit.p.z * a), yarn: hit.yarn })
+    }
+
+    /// [`TileGeometry::closest`] in the stretched space where the tubes are round.
+    fn closest_round(&self, o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> Option<TubeHit> {
         let (tx, ty) = (self.set.tile_x, self.set.tile_y);
         let mut o = self.wrap(o);
         let mut travelled = 0.0f32;
@@ -234,10 +252,21 @@ impl TileGeometry {
         None
     }
 
-    /// Distance along unit `d` from `p` (inside or on yarn `yarn`'s tube) to where the ray leaves
-    /// the tube: Newton on `g(t) = dist(p + t d, curve) − r`, started at the far root of the local
-    /// straight cylinder, with bisection as a fallback.
+    /// Distance along unit `d` from `p` (inside or on yarn `yarn`'s tube; world) to where the ray
+    /// leaves the tube: Newton on `g(t) = dist(p + t d, curve) − r`, started at the far root of the
+    /// local straight cylinder, with bisection as a fallback (in the stretched space of flattened
+    /// yarns, the distance converted back to the world).
     pub fn exit_tube(&self, yarn: usize, p: Vec3, d: Vec3) -> f32 {
+        let y = &self.set.yarns[yarn];
+        if y.aspect == 1.0 {
+            return self.exit_round(yarn, p, d);
+        }
+        let (ds, len) = y.dir_to_round(d);
+        self.exit_round(yarn, y.to_round(p), ds) / len
+    }
+
+    /// [`TileGeometry::exit_tube`] in the stretched space where the tubes are round.
+    fn exit_round(&self, yarn: usize, p: Vec3, d: Vec3) -> f32 {
         let y = &self.set.yarns[yarn];
         let r = y.radius;
         let (_, s0) = y.distance(p);
@@ -364,5 +393,81 @@ mod tests {
             assert!((dist - y.radius).abs() < 1e-2, "s={s}: {dist}");
             assert!(t > 1.0);
         }
+    }
+}
+
+#[cfg(test)]
+mod shape_tests {
+    use super::*;
+    use crate::geometry::yarn::YarnShape;
+    use crate::pattern::WeavePattern;
+
+    fn flat() -> TileGeometry {
+        let shape = YarnShape { crossing: 0.5, aspect: 0.5 };
+        TileGeometry::new(YarnSet::with_shape(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0, shape))
+    }
+
+    /// World implicit function of yarn `k`: stretched distance to the curve minus the radius.
+    fn g(geom: &TileGeometry, k: usize, p: Vec3) -> f32 {
+        let y = &geom.set.yarns[k];
+        y.distance(y.to_round(p)).0 - y.radius
+    }
+
+    #[test]
+    fn flattened_tubes_are_ellipses_with_finite_difference_normals() {
+        let geom = flat();
+        let y = &geom.set.yarns[0];
+        // Seen from above, the flattened cloth is the round one (same crossing) squashed by the aspect.
+        let round_shape = YarnShape { crossing: 0.5, aspect: 1.0 };
+        let round =
+            TileGeometry::new(YarnSet::with_shape(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0, round_shape));
+        let top = geom.closest(Vec3::new(5.0, 5.0, 30.0), -Vec3::Z, None).unwrap();
+        let want = 0.5 * round.closest(Vec3::new(5.0, 5.0, 30.0), -Vec3::Z, None).unwrap().p.z;
+        assert!((top.p.z - want).abs() < 2e-2, "top {} vs {want}", top.p.z);
+        assert!(geom.z_top() >= want);
+        for k in 0..40 {
+            let a = k as f32 * 0.31;
+            let d = Vec3::new(a.cos() * 0.5, a.sin() * 0.5, -1.0).normalize();
+            let o = Vec3::new(3.0 + k as f32 * 0.4, 2.0 + k as f32 * 0.3, 30.0);
+            let Some(h) = geom.closest(o, d, None) else { continue };
+            // The hit lies on the world surface (within the capsule chain's 0.07, SEGMENTS_PER_CELL)
+            // and at distance t along the world ray.
+            assert!(g(&geom, h.yarn, h.p).abs() < 0.1, "ray {k}: g = {}", g(&geom, h.yarn, h.p));
+            let pw = o + d * h.t;
+            assert!((geom.wrap(pw) - h.p).truncate().length() < 1e-2 || (pw.z - h.p.z).abs() < 1e-2);
+            // The tube normal is the normalised gradient of g (central differences).
+            let e = 1e-2;
+            let fd = Vec3::new(
+                g(&geom, h.yarn, h.p + Vec3::X * e) - g(&geom, h.yarn, h.p - Vec3::X * e),
+                g(&geom, h.yarn, h.p + Vec3::Y * e) - g(&geom, h.yarn, h.p - Vec3::Y * e),
+                g(&geom, h.yarn, h.p + Vec3::Z * e) - g(&geom, h.yarn, h.p - Vec3::Z * e),
+            )
+            .normalize();
+            let n = geom.set.yarns[h.yarn].tube_normal(h.p);
+            assert!(n.dot(fd) > 0.999, "ray {k}: normal {n} vs finite differences {fd}");
+            // The exit point along a refracted direction is on the surface too.
+            let dir = (d - n * 0.5).normalize();
+            let t = geom.exit_tube(h.yarn, h.p, dir);
+            assert!(g(&geom, h.yarn, h.p + dir * t).abs() < 2e-2, "ray {k}: exit off the surface");
+        }
+        let _ = y;
+    }
+
+    #[test]
+    fn flattened_ply_frames_are_unit_and_face_out() {
+        let geom = flat();
+        let m = crate::geometry::ply::PlyModel { n_p: 3, n_f: 30 };
+        let mut hits = 0;
+        for k in 0..60 {
+            let o = Vec3::new(1.0 + k as f32 * 0.3, 4.0 + (k % 7) as f32 * 0.2, 30.0);
+            let Some(h) = geom.closest(o, -Vec3::Z, None) else { continue };
+            let y = &geom.set.yarns[h.yarn];
+            if let Some(ph) = m.map(y, h.p, -Vec3::Z, true) {
+                hits += 1;
+                assert!((ph.normal.length() - 1.0).abs() < 1e-3 && (ph.tangent.length() - 1.0).abs() < 1e-3);
+                assert!(ph.normal.is_finite() && ph.t >= 0.0);
+            }
+        }
+        assert!(hits > 30, "{hits}");
     }
 }

@@ -17,9 +17,45 @@ pub const SMOOTH_KERNEL: usize = 16;
 /// Gaussian sigma in control points. The paper's σ = 1 leaves a square wave whose flanks are steeper
 /// than the yarns are thick; σ = 3 (¼ cell) gives the "sinusoidal" crimp the paper describes.
 pub const SMOOTH_SIGMA: f32 = 3.0;
-/// Crossing height as a fraction of the touching height `(r_e + r_a)/2`: yarns flatten against each
-/// other, so the centres are closer than for round yarns.
+/// Default crossing height as a fraction of the touching height `(r_e + r_a)/2`: yarns flatten
+/// against each other, so the centres are closer than for round yarns ([`YarnShape::crossing`]).
 pub const CRIMP: f32 = 0.7;
+
+/// Cross-section shape of the yarns (docs/design.md §1.1): the crossing depth and the flattening.
+///
+/// A flattened yarn is the round tube of radius `r` around its centre curve, seen in a space
+/// whose z axis is stretched by `1/aspect`: in the world, the tube's cross-section is an ellipse
+/// with the half-width `r` across the cloth and the half-height `aspect·r` through it. One aspect
+/// for the whole cloth makes this one linear map `S = diag(1, 1, 1/aspect)` of the whole tile, so
+/// tracing, the ply mapping and the exit points stay the exact circle computations of the round
+/// model in that space (`TileGeometry`, `PlyModel` convert rays in and normals out).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct YarnShape {
+    /// Crossing height as a fraction of the touching height (`CRIMP` = 0.7 by default).
+    pub crossing: f32,
+    /// Half-height / half-width of the cross-section (1 = round).
+    pub aspect: f32,
+}
+
+impl Default for YarnShape {
+    fn default() -> Self {
+        YarnShape { crossing: CRIMP, aspect: 1.0 }
+    }
+}
+
+impl YarnShape {
+    /// Range of [`YarnShape::crossing`]: from yarns pressed deep into each other (0.3) to round
+    /// yarns just touching (1.0).
+    pub const CROSSING_RANGE: (f32, f32) = (0.3, 1.0);
+    /// Range of [`YarnShape::aspect`]: from a ribbon three times wider than thick to round.
+    pub const ASPECT_RANGE: (f32, f32) = (0.33, 1.0);
+
+    /// True for the default shape (round yarns, crossing 0.7): parameter files leave it out.
+    pub fn is_default(&self) -> bool {
+        *self == YarnShape::default()
+    }
+}
 
 /// Which yarn family.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -41,6 +77,9 @@ pub struct YarnCurve {
     pub offset: f32,
     /// Tube radius.
     pub radius: f32,
+    /// Cross-section aspect ([`YarnShape::aspect`]): the curve and the tube below live in the
+    /// stretched space `z/aspect`; [`YarnCurve::to_round`] maps world points there.
+    pub aspect: f32,
     /// Height profile over the length coordinate `s` (x for weft, y for warp).
     pub height: PeriodicBSpline,
     /// Length along `s` of the pattern's minimum repeat (≤ the curve's period when the tile holds
@@ -83,7 +122,57 @@ impl YarnCurve {
         }
         let offset = (index as f32 + 0.5) * PITCH;
         let arc_du = n as f32 / period;
-        YarnCurve { family, index, offset, radius, height, repeat: period, arc, arc_du }
+        YarnCurve { family, index, offset, radius, aspect: 1.0, height, repeat: period, arc, arc_du }
+    }
+
+    /// World point → the stretched space where this yarn's tube is round (identity when round).
+    #[inline]
+    pub fn to_round(&self, p: Vec3) -> Vec3 {
+        if self.aspect == 1.0 {
+            p
+        } else {
+            Vec3::new(p.x, p.y, p.z / self.aspect)
+        }
+    }
+
+    /// World direction → unit direction in the stretched space and the length factor `|S d|`
+    /// (a stretched distance `t'` is the world distance `t'/|S d|`).
+    #[inline]
+    pub fn dir_to_round(&self, d: Vec3) -> (Vec3, f32) {
+        if self.aspect == 1.0 {
+            (d, 1.0)
+        } else {
+            let s = Vec3::new(d.x, d.y, d.z / self.aspect);
+            let len = s.length();
+            (s / len, len)
+        }
+    }
+
+    /// Stretched-space normal → world unit normal (normals map by `Sᵀ = diag(1, 1, 1/aspect)`).
+    #[inline]
+    pub fn normal_to_world(&self, n: Vec3) -> Vec3 {
+        if self.aspect == 1.0 {
+            n
+        } else {
+            Vec3::new(n.x, n.y, n.z / self.aspect).normalize_or(n)
+        }
+    }
+
+    /// Stretched-space tangent → world unit tangent (tangents map by `S⁻¹ = diag(1, 1, aspect)`).
+    #[inline]
+    pub fn tangent_to_world(&self, t: Vec3) -> Vec3 {
+        if self.aspect == 1.0 {
+            t
+        } else {
+            Vec3::new(t.x, t.y, t.z * self.aspect).normalize_or(t)
+        }
+    }
+
+    /// Outward unit tube normal at world point `p` on (or near) the tube.
+    pub fn tube_normal(&self, p: Vec3) -> Vec3 {
+        let q = self.to_round(p);
+        let s = self.closest_s(q);
+        self.normal_to_world((q - self.point(s)).normalize_or(Vec3::Z))
     }
 
     /// Period of the curve along `s`.
@@ -187,15 +276,25 @@ pub struct YarnSet {
     pub tile_x: f32,
     /// Tile size along y (`n_e · PITCH`).
     pub tile_y: f32,
-    /// Crossing height `h`.
+    /// Crossing height `h` (in the stretched space of [`YarnShape`]; `aspect·h` in the world).
     pub h: f32,
+    /// Cross-section shape.
+    pub shape: YarnShape,
 }
 
 impl YarnSet {
     /// Generate the centre curves of `pattern` with weft radius `r_e` and warp radius `r_a`.
     pub fn new(pattern: &WeavePattern, r_e: f32, r_a: f32) -> Self {
+        Self::with_shape(pattern, r_e, r_a, YarnShape::default())
+    }
+
+    /// [`YarnSet::new`] with a crossing depth and a flattening ([`YarnShape`]). The crossing height
+    /// `h = crossing·(r_e + r_a)/2` is set in the stretched space where the tubes are round, so in
+    /// the world it is `crossing·aspect·(r_e + r_a)/2`: the same fraction of the flattened yarns'
+    /// touching height.
+    pub fn with_shape(pattern: &WeavePattern, r_e: f32, r_a: f32, shape: YarnShape) -> Self {
         let (ne, na) = (pattern.n_e(), pattern.n_a());
-        let h = CRIMP * 0.5 * (r_e + r_a);
+        let h = shape.crossing * 0.5 * (r_e + r_a);
         let mut yarns = Vec::with_capacity(ne + na);
         for i in 0..ne {
             let raw: Vec<f32> =
@@ -209,15 +308,17 @@ impl YarnSet {
         }
         let red = pattern.reduced();
         for y in &mut yarns {
+            y.aspect = shape.aspect;
             y.repeat = match y.family {
                 Family::Weft => red.n_a() as f32 * PITCH,
                 Family::Warp => red.n_e() as f32 * PITCH,
             };
         }
-        YarnSet { yarns, tile_x: na as f32 * PITCH, tile_y: ne as f32 * PITCH, h }
+        YarnSet { yarns, tile_x: na as f32 * PITCH, tile_y: ne as f32 * PITCH, h, shape }
     }
 
-    /// Highest point of any tube (for bounding the cloth slab).
+    /// Highest point of any tube in the stretched space where the tubes are round (for bounding
+    /// the cloth slab); `aspect` times it in the world.
     pub fn z_max(&self) -> f32 {
         self.yarns.iter().map(|y| y.radius).fold(0.0, f32::max) + self.h
     }

@@ -369,6 +369,104 @@ fn axis_grid(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, strength: f64, mi
     }
 }
 
+/// The yarn pitch along `axis_x` read from how the lines of the other family are shifted against
+/// each other, when the pitch measured along the axis is a float's or a repeat's length.
+///
+/// Why: on a twill or satin lit from the front the yarns under the floats barely show, so the
+/// profile along the floats repeats at the float period (a 3/1 twill photo gave a "pitch" of
+/// 203 px against yarns of ≈ 50 px, a satin 230–300 px), and the grid came out 1–3 yarns wide.
+/// But the floats of neighbouring lines of the *other* family are offset by whole yarns: a twill's
+/// by one yarn, a satin's by its step, a plain weave's by half its period. So with `other` (the
+/// grid across the lines, taken as right) the bands between its boundaries are cut out, the
+/// repeat `P` of their profiles measured (mean of the per-band autocorrelations, the rule of
+/// `peak_pitch`), and the shift `s` that best maps each band onto the next (summed
+/// cross-correlation over `(−P/2, P/2]`). The yarns along the axis are the smallest `n` (2–8)
+/// for which `s` is within 0.15 yarn of a whole number of yarns `P/n`. `None` when the bands do
+/// not repeat (strength < 0.3), the best shift correlates below 0.3 or is near 0 (neighbouring
+/// lines alike: no information), or no `n` fits. Returns (pitch, summed shift correlation).
+pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64) -> Option<(f64, f64)> {
+    let t;
+    let lines = if axis_x {
+        g
+    } else {
+        t = g.transposed();
+        &t
+    };
+    let (w, h) = (lines.w, lines.h);
+    let (op, oph) = (other.pitch as f64, other.phase as f64);
+    if op < 2.0 || w < 16 {
+        return None;
+    }
+    // Band profiles: the mean over the inner half of each line of the other family.
+    let mut bands: Vec<Vec<f64>> = Vec::new();
+    let mut y0 = oph.rem_euclid(op);
+    while y0 + op <= h as f64 {
+        let (a, b) = ((y0 + 0.25 * op).ceil() as usize, ((y0 + 0.75 * op).floor() as usize).min(h - 1));
+        if b > a {
+            let mut p = vec![0.0f64; w];
+            for y in a..=b {
+                for (v, &x) in p.iter_mut().zip(&lines.data[y * w..(y + 1) * w]) {
+                    *v += x as f64;
+                }
+            }
+            let m = p.iter().sum::<f64>() / w as f64;
+            p.iter_mut().for_each(|v| *v -= m);
+            bands.push(p);
+        }
+        y0 += op;
+    }
+    if bands.len() < 3 {
+        return None;
+    }
+    // The bands' own repeat.
+    let max_lag = w / 2;
+    let mut ac = vec![0.0f64; max_lag + 1];
+    for b in &bands {
+        let a = autocorr(b, max_lag);
+        ac.iter_mut().zip(&a).for_each(|(s, v)| *s += v / bands.len() as f64);
+    }
+    let (period, strength) = peak_pitch(&ac, min_pitch)?;
+    if strength < 0.3 {
+        return None;
+    }
+    // The shift of each band against the next, summed over the pairs.
+    let half = (period / 2.0).floor() as isize;
+    let mut best = (0isize, f64::MIN);
+    for s in -half + 1..=half {
+        let mut acc = 0.0;
+        for pair in bands.windows(2) {
+            let (a, b) = (&pair[0], &pair[1]);
+            let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+            for x in 0..w as isize {
+                let xs = x + s;
+                if xs < 0 || xs >= w as isize {
+                    continue;
+                }
+                let (u, v) = (a[x as usize], b[xs as usize]);
+                ab += u * v;
+                aa += u * u;
+                bb += v * v;
+            }
+            if aa > 0.0 && bb > 0.0 {
+                acc += ab / (aa * bb).sqrt();
+            }
+        }
+        let c = acc / (bands.len() - 1) as f64;
+        if c > best.1 {
+            best = (s, c);
+        }
+    }
+    let (s, c) = (best.0.unsigned_abs() as f64, best.1);
+    if c < 0.3 {
+        return None;
+    }
+    (2..=8usize).find_map(|n| {
+        let pitch = period / n as f64;
+        let k = (s / pitch).round();
+        (k >= 1.0 && (s - k * pitch).abs() <= 0.15 * pitch && pitch >= min_pitch).then_some((pitch, c))
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

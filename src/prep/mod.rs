@@ -18,11 +18,13 @@
 //! Conventions: images are linear RGB `f32` ([`Rgb32FImage`]); the pattern has `n_e` rows (weft
 //! yarns, running along image x) and `n_a` columns (warp yarns, running along image y).
 
+pub mod cells;
 pub mod grid;
 pub mod image_ops;
 pub mod period;
 pub mod rectify;
 pub mod regularize;
+pub mod survey;
 #[cfg(test)]
 mod testutil;
 
@@ -323,16 +325,34 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
             (a, b) => a.or(b),
         }
     };
-    let ax0 = axis0(true).ok_or(PrepError::NoStructure)?;
-    let ay0 = axis0(false).ok_or(PrepError::NoStructure)?;
+    let mut ax0 = axis0(true).ok_or(PrepError::NoStructure)?;
+    let mut ay0 = axis0(false).ok_or(PrepError::NoStructure)?;
     if ax0.strength < opts.min_structure || ay0.strength < opts.min_structure {
         return Err(PrepError::NoStructure);
+    }
+    // A pitch that spans several yarns (a float's or a repeat's length on twills and satins) is
+    // replaced by the one the shifts between the lines of the other family give
+    // (`grid::pitch_from_line_shift`); only the coarser axis is examined, against the finer one.
+    let coarse_x = ax0.pitch > ay0.pitch;
+    let (coarse, fine) = if coarse_x { (&ax0, &ay0) } else { (&ay0, &ax0) };
+    if let Some((p, _)) = grid::pitch_from_line_shift(&gb, coarse_x, fine, min_pitch) {
+        if p < 0.7 * coarse.pitch as f64 {
+            let (ep, ephase, conf) = grid::edge_grid(&gb, coarse_x, p);
+            let (pitch, phase) =
+                if conf >= grid::MIN_EDGE_CONFIDENCE { (ep, ephase) } else { (p, coarse.phase as f64) };
+            let fixed = AxisGrid { pitch: pitch as f32, phase: phase as f32, ..coarse.clone() };
+            if coarse_x {
+                ax0 = fixed;
+            } else {
+                ay0 = fixed;
+            }
+        }
     }
     // 3. Blur, σ = pitch / 16.
     let pitch0 = 0.5 * (ax0.pitch + ay0.pitch);
     let blurred = blur_rgb(r, pitch0 / 16.0);
     // 4. Minimum pattern size (DMF).
-    let (per_x, per_y) = detect_period(
+    let (mut per_x, mut per_y) = detect_period(
         &flatten_for_period(&g, ax0.pitch.max(ay0.pitch) as f64, pitch0 as f64),
         // A repeat holds at least two yarns each way (n = 1 would mean the yarns never
         // interlace), so lags below 1.5 pitches are not candidates.
@@ -347,6 +367,21 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
             })
         }),
     );
+    // 4b. The repeat of the cells (which yarn is on top), where it is clear: it overrides the
+    //     pixel DMF, whose minima are set by what all cells share (see `cells`).
+    let cm = cells::cell_matrix(&gb, [ax0.pitch as f64, ay0.pitch as f64], [ax0.phase as f64, ay0.phase as f64]);
+    let mut n_cells = [None; 2];
+    if let Some(m) = &cm {
+        for (k, (axis_x, per, a)) in [(true, &mut per_x, &ax0), (false, &mut per_y, &ay0)].into_iter().enumerate() {
+            if let Some((n, c)) = m.repeat(axis_x, opts.max_photo_yarns) {
+                let n_dmf = (per.period / a.pitch).round() as usize;
+                if !per.repeated || n_dmf != n {
+                    *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
+                }
+                n_cells[k] = Some(n);
+            }
+        }
+    }
     // Without a repeat on either axis the whole image is one repeat, which only a strong yarn grid
     // justifies: noise passes the first structure test often enough (its integral projections
     // have some autocorrelation at any lag) and would otherwise come out as a small random grid.
@@ -369,8 +404,16 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let pick = |a: Option<AxisGrid>, a0: &AxisGrid| -> AxisGrid {
         a.filter(|a| (a.pitch / a0.pitch - 1.0).abs() < 0.2).unwrap_or_else(|| a0.clone())
     };
-    let ax = pick(analyze_axis(&gr, true, min_pitch), &ax0);
-    let ay = pick(analyze_axis(&gr, false, min_pitch), &ay0);
+    // A repeat read from the cells fixes the yarn count: a second-pass pitch that would change it
+    // is a different lattice of the regularized image (e.g. floats), not a finer estimate.
+    let keep_n = |a: AxisGrid, a0: &AxisGrid, per: &period::AxisPeriod, n: Option<usize>| -> AxisGrid {
+        match n {
+            Some(n) if (per.period / a.pitch).round() as usize != n => a0.clone(),
+            _ => a,
+        }
+    };
+    let ax = keep_n(pick(analyze_axis(&gr, true, min_pitch), &ax0), &ax0, &per_x, n_cells[0]);
+    let ay = keep_n(pick(analyze_axis(&gr, false, min_pitch), &ay0), &ay0, &per_y, n_cells[1]);
     let n_a = ((per_x.period / ax.pitch).round() as usize).max(1);
     let n_e = ((per_y.period / ay.pitch).round() as usize).max(1);
     if n_e.max(n_a) > opts.max_photo_yarns {

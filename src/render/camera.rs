@@ -59,6 +59,13 @@ impl Camera {
         }
     }
 
+    /// World length that one pixel spans on the cloth's mid-plane at the view centre (the
+    /// orthographic pixel size; for the pinhole, its size at the centre's distance). Tilt stretches
+    /// it along one axis; the ply mapping accounts for that through the view's foreshortening.
+    pub fn pixel_footprint(&self) -> f32 {
+        2.0 * self.half_w / self.width as f32
+    }
+
     /// Image size.
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)

@@ -93,6 +93,9 @@ pub struct Tracer<'a> {
     /// Display white in scene radiance (`1/exposure`): a light seen directly through a gap is
     /// clipped to it per sample (see [`Tracer::trace`]).
     pub white: f32,
+    /// World size of a camera pixel on the cloth (0: point samples): fibers below it are sampled
+    /// in strata of their phase at the first vertex ([`PlyModel::map_filtered`], docs/design.md §1.4).
+    pub footprint: f32,
 }
 
 /// Shading frame at a vertex.
@@ -177,9 +180,7 @@ impl Tracer<'_> {
     }
 
     fn tube_normal(&self, yarn: usize, p: Vec3) -> Vec3 {
-        let y = &self.geom.set.yarns[yarn];
-        let s = y.closest_s(p);
-        (p - y.point(s)).normalize_or(Vec3::Z)
+        self.geom.set.yarns[yarn].tube_normal(p)
     }
 
     /// Visibility along `dir` from world point `pw` (tile point `pt`) on yarn `yarn`, testing the
@@ -300,8 +301,9 @@ impl Tracer<'_> {
         n
     }
 
-    /// Trace one camera sample through pixel position `(px, py)` into `buf`.
-    pub fn trace(&self, px: f32, py: f32, rng: &mut SmallRng, buf: &mut PathBuf) {
+    /// Trace one camera sample through pixel position `(px, py)` into `buf`. `fiber_phase` ∈ [0, 1)
+    /// is the sample's stratum of the fiber phase, used where fibers are below the pixel footprint.
+    pub fn trace(&self, px: f32, py: f32, fiber_phase: f32, rng: &mut SmallRng, buf: &mut PathBuf) {
         buf.clear();
         let (o, d) = self.camera.ray(px, py);
         let mut ray_o = o;
@@ -328,7 +330,10 @@ impl Tracer<'_> {
             };
             let yarn = &self.geom.set.yarns[hit.yarn];
             let xw = ray_o + ray_d * hit.t;
-            let Some(ph) = self.plies.map(yarn, hit.p, ray_d, true) else {
+            // Only the first vertex sees the pixel's footprint; deeper vertices sample their fiber
+            // where the path lands, which is already spread over the fibers by the refraction.
+            let footprint = (depth == 0).then_some((self.footprint, fiber_phase));
+            let Some(ph) = self.plies.map_filtered(yarn, hit.p, ray_d, true, footprint) else {
                 // Between plies: march on through this tube without shading (ambiguity 6).
                 let te = self.geom.exit_tube(hit.yarn, hit.p, ray_d);
                 ray_o = xw + ray_d * (te + EPS);

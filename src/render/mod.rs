@@ -63,6 +63,8 @@ pub struct Prepared {
     exposure: f32,
     /// [`Scene::backdrop`]: what a camera sample that misses the cloth sees instead of the lights.
     backdrop: Option<[f32; 3]>,
+    /// Pixel footprint handed to the tracer (0 when [`Scene::footprint_filter`] is off).
+    footprint: f32,
 }
 
 impl Prepared {
@@ -78,10 +80,11 @@ impl Prepared {
         } else {
             cloth.pattern.clone()
         };
-        let set = YarnSet::new(&pattern, cloth.r_e, cloth.r_a);
+        let set = YarnSet::with_shape(&pattern, cloth.r_e, cloth.r_a, cloth.shape);
         let geom = TileGeometry::new(set);
         let (tx, ty) = (cloth.pattern.n_a() as f32 * 10.0, cloth.pattern.n_e() as f32 * 10.0);
         let camera = Camera::new(&scene.camera, scene.width, scene.height, tx, ty, geom.z_top());
+        let footprint = if scene.footprint_filter { camera.pixel_footprint() } else { 0.0 };
         let lights = Light::from_rig(&scene.lights);
         let transmission = !opts.skip_unlit_transmission || lights.iter().any(|l| l.lights_back());
         let window = opts.window.unwrap_or((0, 0, scene.width, scene.height));
@@ -97,6 +100,7 @@ impl Prepared {
             seed: scene.seed,
             exposure: scene.exposure,
             backdrop: scene.backdrop,
+            footprint,
         }
     }
 
@@ -106,7 +110,8 @@ impl Prepared {
     fn trace_sample(&self, tracer: &Tracer, x: u32, y: u32, s: u32, buf: &mut PathBuf) {
         let mut rng = sample_rng(self.seed, self.pixel_index(x, y), s as u64);
         let (jx, jy) = self.jitter(s, &mut rng);
-        tracer.trace(x as f32 + jx, y as f32 + jy, &mut rng, buf);
+        let phase = if self.footprint > 0.0 { self.fiber_phase(x, y, s) } else { 0.0 };
+        tracer.trace(x as f32 + jx, y as f32 + jy, phase, &mut rng, buf);
         if let (Some(b), true) = (self.backdrop, buf.verts.is_empty()) {
             buf.background = b;
         }
@@ -121,12 +126,26 @@ impl Prepared {
             sampling,
             transmission: self.transmission,
             white: 1.0 / self.exposure,
+            footprint: self.footprint,
         }
     }
 
     fn pixel_index(&self, x: u32, y: u32) -> u64 {
         let (w, _) = self.camera.size();
         (y as u64) * w as u64 + x as u64
+    }
+
+    /// Stratum of the fiber phase of sample `s` of pixel `(x, y)` (docs/design.md §1.4): the
+    /// pixel's samples split [0, 1) into `spp` strata, each jittered, behind one random rotation
+    /// per pixel. Drawn from its own random stream, so the sample's other random numbers (and with
+    /// them every render where fibers are above the pixel) stay as they were.
+    fn fiber_phase(&self, x: u32, y: u32, s: u32) -> f32 {
+        let mut rng = sample_rng(self.seed ^ 0xF1BE_F00D, self.pixel_index(x, y), u64::MAX);
+        let base: f32 = rand::RngExt::random(&mut rng);
+        let mut own = sample_rng(self.seed ^ 0xF1BE_F00D, self.pixel_index(x, y), s as u64);
+        let jitter: f32 = rand::RngExt::random(&mut own);
+        let u = base + (s as f32 + jitter) / self.spp.max(1) as f32;
+        u - u.floor()
     }
 
     /// Position of sample `s` inside its pixel: stratified on a k×k grid (k² ≥ spp), jittered inside

@@ -3,13 +3,17 @@
 //! point y, body reflection (Lommel–Seeliger + diffusion) and body transmission, with ply/fiber
 //! shadowing.
 //!
-//! Energy: the body lobes are weighted by the energy that enters the yarn and is not carried by
-//! the specular transmission, `(1 − F(c_v))·(1 − T)`, so a vertex never reflects or transmits
-//! more than it receives (checked by the albedo property tests). This is our addition to the
-//! paper's equations, which leave the split between specular and body to the fit.
+//! Energy: the body lobes are weighted by the energy that the specular reflection leaves and the
+//! specular transmission does not carry, `(1 − max(F(c_v), E_R(c_v, α, η)))·(1 − T)` with `E_R`
+//! the rough reflection lobe's directional albedo ([`reflect_albedo`]), so a vertex never
+//! reflects or transmits more than it receives (checked by the albedo property tests). This is
+//! our addition to the paper's equations, which leave the split between specular and body to the
+//! fit. (The macro-surface Fresnel `1 − F(c_v)` alone is not enough: seen from inside a rough
+//! yarn, tilted microfacets reach total internal reflection and the albedo reached 1.03–1.1.)
 
 use super::ggx::{clamp_alpha, fresnel, reflect_cos, transmit_cos};
 use super::real::{Dual, Real};
+use super::reflect_albedo::reflect_albedo;
 use crate::geometry::yarn::Family;
 use crate::params::{Appearance, N_APPEARANCE};
 use glam::Vec3;
@@ -173,7 +177,7 @@ pub fn shadow_factor<T: Real>(strength: T, ao: f32) -> T {
 }
 
 /// The body-lobe factors of a vertex that do not depend on the light direction: the energy that
-/// enters the yarn and is not specularly transmitted, `(1 − F(c_v))·(1 − T)`, times the shadowing
+/// enters the yarn and is not specularly transmitted, `(1 − max(F, E_R))·(1 − T)`, times the shadowing
 /// floors and `m_r` (reflection) or `(1 − m_r)·S^B/π` (transmission), per RGB channel. Shared by
 /// every light sample of a vertex ([`eval_with`]): computed once per vertex instead of once per
 /// light sample, which matters most for the 30-partial dual numbers of the re-shading gradient.
@@ -188,13 +192,19 @@ impl<T: Real> VertexTerms<T> {
     /// with ply and fiber AO `ao_p`, `ao_f`.
     pub fn new(p: &ShadeParams<T>, kind: VertexKind, family: Family, v: Vec3, ao_p: f32, ao_f: f32) -> Self {
         let fam = family_index(family);
-        let (eta, t_col) = match kind {
-            VertexKind::X => (p.eta, p.t_s),
-            VertexKind::Y => (p.eta_y, p.t_s_y),
+        let (alpha, eta, t_col) = match kind {
+            VertexKind::X => (p.alpha, p.eta, p.t_s),
+            VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
         };
-        // Energy entering the yarn that is not specularly transmitted feeds the body lobes.
+        // Energy the specular reflection leaves enters the yarn; what the specular transmission
+        // does not carry feeds the body lobes. The reflection takes the macro-surface Fresnel
+        // fraction F(c_v), or its rough lobe's albedo E_R where that is more (seen from inside,
+        // tilted microfacets past the critical angle): then E_R + (1 − E_R)·body ≤ 1. Outside,
+        // E_R ≤ F (masking), and F keeps the images the model was trained on.
         let eta_in = if v.z > 0.0 { eta } else { T::c(1.0) / eta };
-        let enter = fresnel(T::c(v.z.abs()), eta_in).one_minus();
+        let f = fresnel(T::c(v.z.abs()), eta_in);
+        let e_r = reflect_albedo(v.z.abs(), alpha, eta_in);
+        let enter = if e_r.v() > f.v() { e_r } else { f }.one_minus();
         let shadow = shadow_factor(p.g_p, ao_p) * shadow_factor(p.g_f, ao_f);
         let base = t_col.map(|t| enter * t.one_minus() * shadow);
         VertexTerms {

@@ -195,7 +195,10 @@ pub fn sample_transmission(v: Vec3, alpha: f32, eta: f32, u1: f32, u2: f32) -> O
     let pdf_h = g1 * ci * ndf(h, alpha) / vl.z;
     let jac = eta_l * eta_l * lh.abs() / (eta_v * ci + eta_l * lh).powi(2);
     let pdf = pdf_h * jac;
-    if !(pdf.is_finite() && pdf > 0.0) || l.z.abs() < 1e-7 {
+    // A rough microfacet near grazing can refract back to the side of `v`: that is not a
+    // transmission through the macro-surface, and `transmission_pdf` gives it no density, so it is
+    // no sample (keeping it biased the MIS albedo estimate high by up to 0.3).
+    if !(pdf.is_finite() && pdf > 0.0) || l.z > -1e-7 {
         return None;
     }
     Some((if flip { -l } else { l }, pdf))
@@ -266,6 +269,8 @@ mod tests {
             if let Some((l, pdf)) = sample_transmission(v, a, eta, u1, u2) {
                 let f = transmit_cos(v, l, a, eta);
                 assert!(f.is_finite() && pdf > 0.0);
+                assert!(l.z * v.z < 0.0, "a transmitted sample stays on the side of v: {v} → {l}");
+                assert!((transmission_pdf(v, l, a, eta) / pdf - 1.0).abs() < 1e-3, "pdf disagrees at k={k}");
                 let w = f / pdf;
                 assert!((0.0..=1.0 + 1e-3).contains(&w), "weight {w} at k={k}");
             }

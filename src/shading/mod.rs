@@ -4,3 +4,4 @@ pub mod albedo;
 pub mod bysdf;
 pub mod ggx;
 pub mod real;
+pub mod reflect_albedo;
