@@ -12,6 +12,13 @@
 //! the renderer's centre curve (the yarn height is a periodic cubic B-spline in `s`; the control
 //! values are recovered from the spline's values at its knots), so the curve Mitsuba traces is the
 //! renderer's curve, overhanging each end of the patch by half a control spacing.
+//!
+//! Yarn shape ([`YarnShape`](crate::geometry::yarn::YarnShape), fitted since session 7): the
+//! centre curves use the cloth's crossing depth, and a flattened cloth (`aspect < 1`) is exported
+//! as the renderer builds it, round tubes in a space whose z is stretched by `1/aspect`, mapped
+//! back by `S⁻¹ = diag(1, 1, aspect)`: positions and curve heights are scaled in z, normals by
+//! `diag(1, 1, 1/aspect)`, so the tube meshes hold the exact elliptical cross-sections. Mitsuba's
+//! `bsplinecurve` is round, so a flattened cloth's scene uses `tubes.ply` instead of the curves.
 
 use crate::geometry::ply::{element_radius, PLY_TWIST_DEG};
 use crate::geometry::yarn::{Family, YarnCurve, YarnSet, CTRL_PER_CELL, PITCH};
@@ -103,9 +110,20 @@ struct View {
     far: f32,
 }
 
+/// Height of the cloth's top in the world (the renderer's tubes live in a space stretched by
+/// `1/aspect` in z).
+fn world_z_max(set: &YarnSet) -> f32 {
+    set.z_max() * set.shape.aspect
+}
+
+/// A point of the stretched space where the tubes are round, in the world: `S⁻¹ p`.
+fn to_world(set: &YarnSet, p: Vec3) -> Vec3 {
+    Vec3::new(p.x, p.y, p.z * set.shape.aspect)
+}
+
 fn camera(params: &ParamFile, set: &YarnSet) -> Camera {
     let sc = &params.scene;
-    Camera::new(&sc.camera, sc.width, sc.height, set.tile_x, set.tile_y, set.z_max())
+    Camera::new(&sc.camera, sc.width, sc.height, set.tile_x, set.tile_y, world_z_max(set))
 }
 
 fn view_of(params: &ParamFile, set: &YarnSet) -> View {
@@ -121,7 +139,7 @@ fn view_of(params: &ParamFile, set: &YarnSet) -> View {
             let upv = flat(cam.ray(0.5 * w, 0.0).0 - cam.ray(0.5 * w, h).0);
             let half_w = 0.5 * right.length();
             let half_h = 0.5 * upv.length();
-            let dist = (set.z_max() + half_h + 1.0) / (-f.z).max(0.2);
+            let dist = (world_z_max(set) + half_h + 1.0) / (-f.z).max(0.2);
             let origin = centre - f * dist;
             View {
                 projection: Projection::Orthographic,
@@ -168,7 +186,7 @@ pub fn view_repeats(params: &ParamFile) -> ([u32; 2], [i32; 2], bool) {
                 unbounded = true;
                 continue;
             }
-            for z in [-set.z_max(), set.z_max()] {
+            for z in [-world_z_max(&set), world_z_max(&set)] {
                 let p = o + d * ((z - o.z) / d.z);
                 let q = [p.x / set.tile_x, p.y / set.tile_y];
                 for a in 0..2 {
@@ -232,7 +250,9 @@ fn control_values(v: &[f32]) -> Vec<f32> {
 }
 
 /// Mitsuba control points `(x, y, z, radius)` of one instance (exact B-spline of the centre curve).
-fn control_points(y: &YarnCurve, inst: &Instance) -> Result<Vec<[f32; 4]>> {
+/// Curve heights are scaled by `aspect` into the world (a linear map commutes with the B-spline);
+/// the radius is the half-width.
+fn control_points(y: &YarnCurve, inst: &Instance, aspect: f32) -> Result<Vec<[f32; 4]>> {
     let k = (y.period() / PITCH).round() as usize * CTRL_PER_CELL;
     let delta = y.period() / k as f32;
     let knots: Vec<f32> = (0..k).map(|i| y.height.eval((i as f32 + 0.5) * delta).0).collect();
@@ -242,7 +262,7 @@ fn control_points(y: &YarnCurve, inst: &Instance) -> Result<Vec<[f32; 4]>> {
     let mut pts = Vec::with_capacity((kb - ka + 4) as usize);
     for g in ka - 2..=kb + 1 {
         let s = (g as f32 + 0.5) * delta;
-        let z = c[g.rem_euclid(k as i64) as usize];
+        let z = c[g.rem_euclid(k as i64) as usize] * aspect;
         let p = match y.family {
             Family::Weft => Vec3::new(s, y.offset + inst.shift, z),
             Family::Warp => Vec3::new(y.offset + inst.shift, s, z),
@@ -256,7 +276,8 @@ fn control_points(y: &YarnCurve, inst: &Instance) -> Result<Vec<[f32; 4]>> {
             Family::Weft => q.x,
             Family::Warp => q.y,
         };
-        let err = (inst.point(y, s) - q).length();
+        let p = inst.point(y, s);
+        let err = (Vec3::new(p.x, p.y, p.z * aspect) - q).length();
         ensure!(err < 1e-3, "internal error: exported B-spline deviates from yarn {} by {err}", y.index);
     }
     Ok(pts)
@@ -317,6 +338,16 @@ impl Mesh {
                 }
             }
         }
+    }
+
+    /// Map a mesh built in the stretched space where the tubes are round to the world: positions
+    /// by `S⁻¹ = diag(1, 1, aspect)`, normals by `Sᵀ = diag(1, 1, 1/aspect)` (renormalised).
+    fn unstretch(&mut self, aspect: f32) {
+        if aspect == 1.0 {
+            return;
+        }
+        self.pos.iter_mut().for_each(|p| p.z *= aspect);
+        self.nrm.iter_mut().for_each(|n| *n = Vec3::new(n.x, n.y, n.z / aspect).normalize_or(*n));
     }
 
     fn verts_per_tube(samples: usize, k: usize) -> usize {
@@ -388,7 +419,7 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
     );
     ensure!((3..=64).contains(&opts.ring), "ring vertices must be in 3..=64, got {}", opts.ring);
     let cloth = &params.cloth;
-    let set = YarnSet::new(&cloth.pattern, cloth.r_e, cloth.r_a);
+    let set = YarnSet::with_shape(&cloth.pattern, cloth.r_e, cloth.r_a, cloth.shape);
     let (ne, na) = (cloth.pattern.n_e(), cloth.pattern.n_a());
     let (repeats, origin, clamped) = match opts.repeats {
         Some(r) => {
@@ -461,7 +492,7 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
         let n = samples_of(inst);
         for k in 0..n {
             let s = inst.s0 + (inst.s1 - inst.s0) * k as f32 / (n - 1) as f32;
-            let p = inst.point(y, s);
+            let p = to_world(&set, inst.point(y, s));
             let _ = writeln!(pl, "{} {} {} {} {} {}", p.x, p.y, p.z, y.radius, inst.yarn, ci);
             if k > 0 {
                 let _ = writeln!(edges, "{} {}", nv + k - 1, nv + k);
@@ -480,6 +511,10 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
                 units.clone(),
                 "yarn centre curves as polylines; yarn = index (weft rows 0..n_e, then warp columns), curve = curve id"
                     .into(),
+                format!(
+                    "radius = half-width across the cloth; the half-height through it is aspect * radius, aspect = {}",
+                    set.shape.aspect
+                ),
             ],
         );
         let head = format!(
@@ -508,6 +543,7 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
             .collect();
         mesh.tube(&rings, y.radius, ring, inst.yarn as u32);
     }
+    mesh.unstretch(set.shape.aspect);
     let mesh_comments = |what: &str| vec![about.clone(), units.clone(), what.to_string()];
     write_mesh(
         &dir.join("tubes.ply"),
@@ -547,6 +583,7 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
                 mesh.tube(&rings, rp, ring, inst.yarn as u32);
             }
         }
+        mesh.unstretch(set.shape.aspect);
         write_mesh(
             &dir.join("plies.ply"),
             &mesh,
@@ -570,7 +607,7 @@ pub fn export(params: &ParamFile, dir: &Path, opts: &ExportOptions) -> Result<Ex
         for inst in &instances[range] {
             let y = &set.yarns[inst.yarn];
             debug_assert_eq!(y.family, fam);
-            let pts = control_points(y, inst)?;
+            let pts = control_points(y, inst, set.shape.aspect)?;
             control += pts.len();
             for p in pts {
                 let _ = writeln!(s, "{} {} {} {}", p[0], p[1], p[2], p[3]);
@@ -742,7 +779,18 @@ fn scene_xml(params: &ParamFile, set: &YarnSet, about: &str, units: &str) -> Str
         let _ = writeln!(x, "    </bsdf>\n  </bsdf>");
     }
 
-    // Shapes.
+    // Shapes: Mitsuba's curves are round, so a flattened cloth uses the exact elliptical tube mesh.
+    if set.shape.aspect != 1.0 {
+        let _ = writeln!(
+            x,
+            "  <!-- Flattened yarns (aspect {}): Mitsuba's B-spline curves are round, so the tube mesh (exact \
+             elliptical sections) is used; tubes.ply holds both families, split it by its yarn property for \
+             per-family materials. -->\n  <shape type=\"ply\">\n    <string name=\"filename\" value=\"tubes.ply\"/>\n    \
+             <ref id=\"mat_weft\"/>\n  </shape>\n</scene>",
+            set.shape.aspect
+        );
+        return x;
+    }
     for id in ["weft", "warp"] {
         let _ = writeln!(
             x,

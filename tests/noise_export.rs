@@ -14,7 +14,7 @@ use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
 use std::path::Path;
 use woven::export::{bspline_point, export, ExportOptions};
-use woven::geometry::yarn::{Family, YarnSet};
+use woven::geometry::yarn::{Family, YarnSet, YarnShape};
 use woven::noise::{residual, NoiseError, NoiseModel};
 use woven::params::{ClothParams, ParamFile};
 use woven::scene::{Projection, Scene};
@@ -701,4 +701,47 @@ fn mitsuba_loads_the_scene() {
         .status()
         .unwrap();
     assert!(st.success());
+}
+
+/// A fitted shape (deep crossings, flattened yarns) is exported as the renderer builds it: every
+/// tube vertex lies on the renderer's elliptical surface (at the radius once mapped into the
+/// stretched space where the tubes are round), the curves' heights follow the crossing depth, and
+/// the Mitsuba scene uses the mesh because its curves are round.
+#[test]
+fn export_keeps_the_fitted_yarn_shape() {
+    let mut params = twill();
+    params.cloth.shape = YarnShape { crossing: 0.45, aspect: 0.6 };
+    let set = YarnSet::with_shape(&params.cloth.pattern, params.cloth.r_e, params.cloth.r_a, params.cloth.shape);
+    let dir = tempfile::tempdir().unwrap();
+    let s = export(&params, dir.path(), &ExportOptions { repeats: Some([1, 1]), ..Default::default() }).unwrap();
+    let (verts, _) = read_mesh(&dir.path().join("tubes.ply"));
+    assert_eq!(verts.len(), s.tube_vertices);
+    let mut worst = 0.0f32;
+    let mut top = f32::MIN;
+    for (p, k) in verts.iter().step_by(5) {
+        let y = &set.yarns[*k as usize];
+        let d = dist_to_yarn(&set, *k as usize, y.to_round(*p));
+        if d > 1e-3 {
+            worst = worst.max((d - y.radius).abs() / y.radius);
+        }
+        top = top.max(p.z);
+    }
+    assert!(worst < 0.02, "tube vertex {worst} of a radius off the renderer's flattened tube");
+    // World top of the cloth: aspect × (crossing height + radius), well below the round default.
+    let expect_top = 0.6 * (set.h + params.cloth.r_e.max(params.cloth.r_a));
+    assert!((top - expect_top).abs() < 0.05 * expect_top, "top {top} vs {expect_top}");
+    let round = YarnSet::new(&params.cloth.pattern, params.cloth.r_e, params.cloth.r_a);
+    assert!(top < 0.7 * round.z_max(), "flattened cloth as high as the round one: {top} vs {}", round.z_max());
+    // Curve control heights are the world heights: at most aspect × crossing height.
+    let h_world = 0.6 * set.h;
+    for c in read_curves(&dir.path().join("curves_weft.txt")) {
+        assert!(c.iter().all(|p| p[2].abs() <= h_world * 1.6 + 1e-3), "control heights beyond the crossing depth");
+    }
+    let xml = std::fs::read_to_string(dir.path().join("scene.xml")).unwrap();
+    assert!(xml.contains("<shape type=\"ply\">") && !xml.contains("<shape type=\"bsplinecurve\">"), "{xml}");
+    // The default shape still exports curves.
+    let dir2 = tempfile::tempdir().unwrap();
+    export(&twill(), dir2.path(), &ExportOptions { repeats: Some([1, 1]), ..Default::default() }).unwrap();
+    let xml2 = std::fs::read_to_string(dir2.path().join("scene.xml")).unwrap();
+    assert!(xml2.contains("<shape type=\"bsplinecurve\">"));
 }
