@@ -260,12 +260,16 @@ pub fn sheet_row(a: &Image, b: &Image, height: u32) -> Image {
     Image::hstack(&[&sheet_tile(a, height), &sheet_tile(b, height), &sheet_tile(&err, height)], 2)
 }
 
-/// `compare.png`: target | fit | error (×4), upscaled, with the PSNR written on it.
+/// `compare.png`: target | fit as compared ([`FitResult::observed_render`]) | error (×4),
+/// upscaled, with the PSNR written on it.
 pub fn write_compare(res: &FitResult, path: &Path) -> Result<()> {
     register_font();
     let f = (256 / res.target.height.max(1)).clamp(1, 16);
-    let err = error_map(&res.target, &res.render);
-    let (t, r, e) = (upscale(&res.target, f), upscale(&res.render, f), upscale(&err, f));
+    // The fit as it was compared (blurred like the target), so the error map is the one whose
+    // PSNR is printed.
+    let observed = res.observed_render();
+    let err = error_map(&res.target, &observed);
+    let (t, r, e) = (upscale(&res.target, f), upscale(&observed, f), upscale(&err, f));
     let strip = Image::hstack(&[&t, &r, &e], 4);
     let label_h = 28u32;
     let (w, h) = (strip.width.max(360), strip.height + label_h);

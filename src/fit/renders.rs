@@ -50,7 +50,8 @@ pub struct RenderCase {
     pub secs: f64,
     /// Why the fit failed.
     pub error: Option<String>,
-    /// Contact-sheet row: the crop the fit matched | the fit | 4× the sRGB error (as in `compare.png`).
+    /// Contact-sheet row: the crop the fit matched | the fit as compared (blurred like the crop) |
+    /// 4× the sRGB error (as in `compare.png`).
     pub row: Option<Image>,
 }
 
@@ -238,7 +239,7 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
             case.fit = res.params.cloth.pattern.to_string();
             case.exact = res.params.cloth.pattern.equivalent(&truth);
             case.crop_psnr_db = res.psnr_db;
-            case.row = Some(sheet_row(&res.target, &res.render, SHEET_ROW_H));
+            case.row = Some(sheet_row(&res.target, &res.observed_render(), SHEET_ROW_H));
             if let Some(s) = save {
                 write_fit_outputs(&res, &s.join(name), true, opts.control.threads)?;
             }
@@ -318,7 +319,7 @@ mod tests {
             let data = (0..w * h)
                 .map(|i| {
                     let x = (i % w + offset) % w;
-                    let c = if (x / 4) % 2 == 0 { warp } else { weft };
+                    let c = if (x / 4).is_multiple_of(2) { warp } else { weft };
                     c.map(|v| v * shade(x))
                 })
                 .collect();
@@ -327,7 +328,7 @@ mod tests {
         let labels = Image::new(
             w,
             h,
-            (0..w * h).map(|i| if (i % w / 4) % 2 == 0 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] }).collect(),
+            (0..w * h).map(|i| if (i % w / 4).is_multiple_of(2) { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] }).collect(),
         );
         let input = paint(0, warp_col, weft_col);
         // The same cloth, registered: no error, shading and all.
