@@ -118,6 +118,18 @@ fn loss_values(img: &Image, b: u32) -> Vec<[f32; 3]> {
 /// narrow puts over 99 % of its weight on the centre pixel).
 const MIN_BLUR: f32 = 0.2;
 
+/// `img` blurred by a Gaussian of `sigma` pixels, wrapping around both edges (the image is one
+/// repeat of a periodic cloth); below [`MIN_BLUR`] it is returned as it is. This is the blur
+/// [`Evaluator::observe`] gives a fit render; [`super::output::registered_render`] gives it to the
+/// repeat it lays over the photo, with σ scaled to that repeat's pixels.
+pub(crate) fn blur_wrapped(img: &Image, sigma: f32) -> Image {
+    if sigma.is_nan() || sigma < MIN_BLUR {
+        return img.clone();
+    }
+    let k = gaussian_taps(sigma);
+    Image::new(img.width, img.height, blur_periodic(&img.data, img.width as usize, img.height as usize, &k))
+}
+
 /// Normalised taps of a Gaussian of `sigma` pixels, out to 3σ each side (centre in the middle).
 fn gaussian_taps(sigma: f32) -> Vec<f32> {
     let r = (3.0 * sigma).ceil().max(1.0) as i32;
@@ -323,11 +335,7 @@ impl Evaluator {
 
     /// A render as the target sees it: blurred as the target was (see [`Evaluator::with_blur`]).
     pub(crate) fn observe(&self, img: &Image) -> Image {
-        if self.blur < MIN_BLUR {
-            return img.clone();
-        }
-        let k = gaussian_taps(self.blur);
-        Image::new(img.width, img.height, blur_periodic(&img.data, img.width as usize, img.height as usize, &k))
+        blur_wrapped(img, self.blur)
     }
 
     /// The same view and target rendered at `spp` samples per pixel with `seed` (its re-traces
@@ -592,6 +600,26 @@ mod tests {
         assert_eq!(alone.traces().count(), 1);
         assert_eq!((fine.scene().spp, fine.scene().seed, fine.block()), (2, 9, 2));
         assert_eq!(other.target_values().len(), 4);
+    }
+
+    #[test]
+    fn the_wrapped_blur_spreads_across_the_edges_and_keeps_the_mean() {
+        // One bright pixel in the corner of an 8×6 repeat.
+        let mut img = Image::filled(8, 6, [0.0; 3]);
+        img.data[0] = [1.0, 0.5, 0.0];
+        assert_eq!(blur_wrapped(&img, MIN_BLUR * 0.9).data, img.data, "below MIN_BLUR: unchanged");
+        assert_eq!(blur_wrapped(&img, f32::NAN).data, img.data, "NaN σ: unchanged");
+        let b = blur_wrapped(&img, 1.0);
+        // Symmetric about the corner: the neighbour across the left edge (x = 7) gets what x = 1
+        // gets, and the one across the top edge (y = 5) what y = 1 gets.
+        assert!((b.get(7, 0)[0] - b.get(1, 0)[0]).abs() < 1e-6 && b.get(1, 0)[0] > 0.05);
+        assert!((b.get(0, 5)[0] - b.get(0, 1)[0]).abs() < 1e-6);
+        // The centre keeps the product of the 1-D centre taps: exp(0)/Σ exp(−d²/2), d = −3..3.
+        let s: f32 = (-3..=3).map(|d: i32| (-(d * d) as f32 / 2.0).exp()).sum();
+        assert!((b.get(0, 0)[0] - 1.0 / (s * s)).abs() < 1e-5, "{}", b.get(0, 0)[0]);
+        // Nothing leaves the repeat: the sum (per channel) is kept.
+        let sum = |k: usize| b.data.iter().map(|p| p[k]).sum::<f32>();
+        assert!((sum(0) - 1.0).abs() < 1e-5 && (sum(1) - 0.5).abs() < 1e-5 && sum(2) == 0.0);
     }
 
     #[test]

@@ -238,6 +238,14 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     })
 }
 
+impl FitResult {
+    /// [`FitResult::render`] as the fit compared it with the target: blurred (wrapping around the
+    /// repeat) by [`FitResult::blur_px`]. `psnr_db` is this image's PSNR against `target`.
+    pub fn observed_render(&self) -> Image {
+        evaluator::blur_wrapped(&self.render, self.blur_px)
+    }
+}
+
 impl std::fmt::Debug for FitResult {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("FitResult")

@@ -113,8 +113,22 @@ const REGISTER_SPP: u32 = 32;
 /// at about the photo's pixels per cell, holds every pixel: input pixel `(x, y)` maps to rectified
 /// pixel `(u, v) = H⁻¹(x, y)`, whose position in the repeat is its offset from the crop's corner
 /// as a fraction of the crop (`crop.w` × `crop.h`: warp and weft pitches may differ), wrapped;
-/// the repeat is sampled there bilinearly with wrap-around.
+/// the repeat is sampled there bilinearly with wrap-around. The repeat is blurred as the fit's
+/// renders were before they met the target ([`FitResult::blur_px`]).
 pub fn registered_render(res: &FitResult, size: (u32, u32), threads: Option<usize>) -> Option<Image> {
+    register(res, size, threads, true)
+}
+
+/// [`registered_render`] without the fit's blur: the cloth as the fit models it, seen by a sharp
+/// camera. What a sharp input (a render by another renderer) is compared with pixel for pixel
+/// (`renders::colour_error`): the blur moves colour across yarn edges, from the backdrop into the
+/// yarns' edge pixels, which a sharp input does not have.
+pub fn registered_render_sharp(res: &FitResult, size: (u32, u32), threads: Option<usize>) -> Option<Image> {
+    register(res, size, threads, false)
+}
+
+/// [`registered_render`], the repeat blurred as the fit's renders were when `blurred`.
+fn register(res: &FitResult, size: (u32, u32), threads: Option<usize>, blurred: bool) -> Option<Image> {
     let p = res.prep.as_ref()?;
     let inv = crate::math::linalg::mat3_inv(&p.homography)?;
     let (n_e, n_a) = (res.cloth.pattern.n_e(), res.cloth.pattern.n_a());
@@ -129,6 +143,13 @@ pub fn registered_render(res: &FitResult, size: (u32, u32), threads: Option<usiz
         ..res.fit_scene.clone()
     };
     let tile = render(&res.cloth, &scene, &RenderOptions { threads, ..Default::default() });
+    // The fit compared its renders with the target after a Gaussian blur of `blur_px` fit pixels
+    // (the blur preparation gave the target, plus the photo's own); the repeat gets the same blur,
+    // σ scaled from the fit's pixels per cell to this repeat's, so that fit.png shows what was
+    // fitted rather than a sharper cloth the fit never compared.
+    let fit_c = res.render.width as f32 / n_a.max(1) as f32;
+    let sigma = if blurred { res.blur_px * c as f32 / fit_c.max(1e-3) } else { 0.0 };
+    let tile = super::evaluator::blur_wrapped(&tile, sigma);
     let (tw, th) = (tile.width as f64, tile.height as f64);
     let (w, h) = size;
     let mut data = Vec::with_capacity((w * h) as usize);
@@ -239,12 +260,16 @@ pub fn sheet_row(a: &Image, b: &Image, height: u32) -> Image {
     Image::hstack(&[&sheet_tile(a, height), &sheet_tile(b, height), &sheet_tile(&err, height)], 2)
 }
 
-/// `compare.png`: target | fit | error (×4), upscaled, with the PSNR written on it.
+/// `compare.png`: target | fit as compared ([`FitResult::observed_render`]) | error (×4),
+/// upscaled, with the PSNR written on it.
 pub fn write_compare(res: &FitResult, path: &Path) -> Result<()> {
     register_font();
     let f = (256 / res.target.height.max(1)).clamp(1, 16);
-    let err = error_map(&res.target, &res.render);
-    let (t, r, e) = (upscale(&res.target, f), upscale(&res.render, f), upscale(&err, f));
+    // The fit as it was compared (blurred like the target), so the error map is the one whose
+    // PSNR is printed.
+    let observed = res.observed_render();
+    let err = error_map(&res.target, &observed);
+    let (t, r, e) = (upscale(&res.target, f), upscale(&observed, f), upscale(&err, f));
     let strip = Image::hstack(&[&t, &r, &e], 4);
     let label_h = 28u32;
     let (w, h) = (strip.width.max(360), strip.height + label_h);

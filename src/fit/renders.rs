@@ -13,9 +13,8 @@
 //! the bottom weft of the image (its camera looks down with +y up), so the truth is the renderer's
 //! matrix inverted with its rows reversed.
 
-use super::output::{sheet_row, write_fit_outputs};
+use super::output::{registered_render_sharp, sheet_row, write_fit_outputs};
 use super::report::quantile;
-use super::target::yarn_mean;
 use super::{fit, FitOptions};
 use crate::image_io::Image;
 use crate::pattern::WeavePattern;
@@ -43,13 +42,16 @@ pub struct RenderCase {
     /// PSNR of the fit against the crop it matched (sRGB, dB).
     pub crop_psnr_db: f32,
     /// Largest per-channel distance of the fit's warp and weft mean colours from the input's
-    /// (linear), when the folder has label maps.
+    /// (linear), when the folder has label maps ([`FamilyColours::error`]).
     pub colour_err: Option<f32>,
+    /// The family colours behind `colour_err`.
+    pub colours: Option<FamilyColours>,
     /// Fit seconds.
     pub secs: f64,
     /// Why the fit failed.
     pub error: Option<String>,
-    /// Contact-sheet row: the crop the fit matched | the fit | 4× the sRGB error (as in `compare.png`).
+    /// Contact-sheet row: the crop the fit matched | the fit as compared (blurred like the crop) |
+    /// 4× the sRGB error (as in `compare.png`).
     pub row: Option<Image>,
 }
 
@@ -135,6 +137,38 @@ fn image_stems(dir: &Path) -> Result<Vec<String>> {
     Ok(stems)
 }
 
+/// Mean colour (linear RGB) of each yarn family, `[warp, weft]`, in the input and in the fit
+/// registered to it, over the same label pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FamilyColours {
+    /// The input's `[warp, weft]` means.
+    pub input: [[f32; 3]; 2],
+    /// The registered fit's `[warp, weft]` means over the same pixels.
+    pub fit: [[f32; 3]; 2],
+}
+
+impl FamilyColours {
+    /// Largest per-channel distance `max_{family, k} |fit − input|`: the issue's colour figure.
+    pub fn error(&self) -> f32 {
+        (0..2)
+            .flat_map(|f| (0..3).map(move |k| (f, k)))
+            .map(|(f, k)| (self.fit[f][k] - self.input[f][k]).abs())
+            .fold(0.0, f32::max)
+    }
+
+    /// `warp in (r g b) fit (r g b) weft in (…) fit (…)`, two decimals.
+    pub fn describe(&self) -> String {
+        let c = |v: [f32; 3]| format!("({:.2} {:.2} {:.2})", v[0], v[1], v[2]);
+        format!(
+            "warp in {} fit {} weft in {} fit {}",
+            c(self.input[0]),
+            c(self.fit[0]),
+            c(self.input[1]),
+            c(self.fit[1])
+        )
+    }
+}
+
 /// The input's mean colour of the pixels that belong to the warp (`warp = true`) or the weft
 /// only, from the label map (R = warp, G = weft coverage).
 fn family_mean(img: &Image, labels: &Image, warp: bool) -> Option<[f32; 3]> {
@@ -154,17 +188,19 @@ fn family_mean(img: &Image, labels: &Image, warp: bool) -> Option<[f32; 3]> {
     (n > 0).then(|| sum.map(|v| (v / n as f64) as f32))
 }
 
-/// Largest per-channel distance between the fit's and the input's family colours.
-fn colour_error(input: &Image, labels: &Image, res: &super::FitResult) -> Option<f32> {
-    let p = &res.cloth.pattern;
-    let c = res.render.width / p.n_a().max(1) as u32;
-    let mut worst = 0.0f32;
-    for weft in [false, true] {
-        let truth = family_mean(input, labels, !weft)?;
-        let fitted = yarn_mean(&res.render, p, c, weft, 0.25)?;
-        worst = (0..3).map(|k| (truth[k] - fitted[k]).abs()).fold(worst, f32::max);
+/// The family colours of the input and of `fit`, the fit registered to the input (same size,
+/// [`registered_render_sharp`]), each averaged over the SAME pure-label pixels: the visible part of
+/// each family where it lies on top, as the issue defines the figure. Averaging both over one set
+/// of pixels compares like with like — a shading gradient across a yarn (brighter crown, darker
+/// flanks) is in both means alike, and a fit registered to the wrong cells or coloured wrongly
+/// shows. `None` when the sizes differ or a family has no pure pixel.
+fn family_colours(input: &Image, labels: &Image, fit: &Image) -> Option<FamilyColours> {
+    if (fit.width, fit.height) != (input.width, input.height) {
+        return None;
     }
-    Some(worst)
+    let input_means = [family_mean(input, labels, true)?, family_mean(input, labels, false)?];
+    let fit_means = [family_mean(fit, labels, true)?, family_mean(fit, labels, false)?];
+    Some(FamilyColours { input: input_means, fit: fit_means })
 }
 
 /// Height of a contact-sheet row, pixels.
@@ -192,6 +228,7 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
         exact: false,
         crop_psnr_db: 0.0,
         colour_err: None,
+        colours: None,
         secs: 0.0,
         error: None,
         row: None,
@@ -202,10 +239,15 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
             case.fit = res.params.cloth.pattern.to_string();
             case.exact = res.params.cloth.pattern.equivalent(&truth);
             case.crop_psnr_db = res.psnr_db;
-            case.colour_err = labels.as_ref().and_then(|l| colour_error(&input, l, &res));
-            case.row = Some(sheet_row(&res.target, &res.render, SHEET_ROW_H));
+            case.row = Some(sheet_row(&res.target, &res.observed_render(), SHEET_ROW_H));
             if let Some(s) = save {
                 write_fit_outputs(&res, &s.join(name), true, opts.control.threads)?;
+            }
+            if let Some(l) = &labels {
+                let size = (input.width, input.height);
+                case.colours = registered_render_sharp(&res, size, opts.control.threads)
+                    .and_then(|fit| family_colours(&input, l, &fit));
+                case.colour_err = case.colours.map(|c| c.error());
             }
         }
         Err(e) => {
@@ -263,6 +305,45 @@ mod tests {
         assert!((warp[0] - 0.3).abs() < 1e-6 && (warp[2] - 0.1).abs() < 1e-6);
         assert_eq!(family_mean(&img, &labels, false).unwrap(), [0.6, 0.5, 0.4]);
         assert!(family_mean(&img, &Image::new(1, 1, vec![[1.0; 3]]), true).is_none());
+    }
+
+    #[test]
+    fn the_colour_error_compares_the_same_pixels_and_catches_a_misregistered_or_miscoloured_fit() {
+        // Vertical stripes 4 px wide: warp (red) in columns 0–3, weft (blue) in 4–7, repeated; a
+        // shading gradient across each stripe (bright centre, dark flanks), as a yarn's has.
+        let (w, h) = (32u32, 8u32);
+        let shade = |x: u32| 0.6 + 0.4 * (1.0 - ((x % 4) as f32 - 1.5).abs() / 1.5);
+        let warp_col = [0.5, 0.1, 0.1];
+        let weft_col = [0.1, 0.1, 0.5];
+        let paint = |offset: u32, warp: [f32; 3], weft: [f32; 3]| {
+            let data = (0..w * h)
+                .map(|i| {
+                    let x = (i % w + offset) % w;
+                    let c = if (x / 4).is_multiple_of(2) { warp } else { weft };
+                    c.map(|v| v * shade(x))
+                })
+                .collect();
+            Image::new(w, h, data)
+        };
+        let labels = Image::new(
+            w,
+            h,
+            (0..w * h).map(|i| if (i % w / 4).is_multiple_of(2) { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] }).collect(),
+        );
+        let input = paint(0, warp_col, weft_col);
+        // The same cloth, registered: no error, shading and all.
+        let same = family_colours(&input, &labels, &input).unwrap();
+        assert!(same.error() < 1e-6, "{same:?}");
+        // Registered one stripe off: each family's pixels show the other family.
+        let shifted = family_colours(&input, &labels, &paint(4, warp_col, weft_col)).unwrap();
+        // Red 0.5 against 0.1, times the mean shade 0.733: 0.293.
+        assert!((shifted.error() - 0.2933).abs() < 1e-3, "{shifted:?}");
+        // Registered, but the weft's blue too bright by 0.1 before shading (mean shade 0.733).
+        let bright = family_colours(&input, &labels, &paint(0, warp_col, [0.1, 0.1, 0.6])).unwrap();
+        assert!((bright.error() - 0.0733).abs() < 1e-3, "{bright:?}");
+        assert_eq!(bright.fit[0], bright.input[0]);
+        // A fit of another size cannot be compared pixel for pixel.
+        assert!(family_colours(&input, &labels, &Image::filled(8, 8, [0.5; 3])).is_none());
     }
 
     #[test]
