@@ -1,0 +1,65 @@
+//! The optional flyaway-fibre layer after the yarn shape (docs/forward-model.md, "Flyaway
+//! fibres"): its density ([`Hair::density`]) scanned over a few levels with one re-trace each,
+//! a level kept only when it lowers the fit's loss by more than a margin, so a cloth the bare
+//! yarns explain (a clean model render) keeps no hairs and renders exactly as before.
+
+use super::evaluator::Evaluator;
+use crate::geometry::hair::Hair;
+use crate::params::ClothParams;
+
+/// Densities tried (hairs per yarn per pitch of length), sparse to fuzzy. The length and the
+/// radius stay at the cloth's (the defaults unless a parameter file set them): at the fit's
+/// resolution a hair is a sub-pixel streak whose coverage is what the loss sees, and density
+/// times length is that coverage.
+const DENSITIES: [f32; 2] = [1.0, 3.0];
+/// Relative loss decrease a density must bring to replace the current one: as for the shape scan
+/// (`shape_extra.rs`), the renders' own Monte Carlo noise moves the loss by about 1 % between
+/// nearby geometries, and hairs that only trade noise must not be kept.
+const MARGIN: f32 = 0.03;
+
+/// Scan the hair density on `ev` with `cloth`'s appearance and shape; write the density kept
+/// into `cloth` (the current one when no level beats it by [`MARGIN`]). Costs three re-traces.
+pub(crate) fn fit_hair(ev: &Evaluator, cloth: &mut ClothParams) {
+    let mut best = (ev.trace_mse(cloth), cloth.hair);
+    for density in DENSITIES {
+        let hair = Hair { density, ..cloth.hair };
+        let mut c = cloth.clone();
+        c.hair = hair;
+        let loss = ev.trace_mse(&c);
+        if loss.is_finite() && loss < best.0 * (1.0 - MARGIN) {
+            best = (loss, hair);
+        }
+    }
+    cloth.hair = best.1;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::demo::demo_cloth;
+    use crate::fit::options::RenderSettings;
+    use crate::fit::target::fit_scene;
+    use crate::render::{Prepared, RenderOptions};
+
+    /// The scan on the fit's own one-repeat target: a render without hairs keeps none; a render
+    /// with hairs (density 3) gets hairs back.
+    #[test]
+    fn the_scan_keeps_no_hair_on_a_bare_render_and_finds_it_on_a_hairy_one() {
+        let render = RenderSettings { px_per_cell: 12, spp: 4, ..RenderSettings::default() };
+        let run = |truth: &ClothParams| {
+            let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
+            let scene = fit_scene(n_e, n_a, render.px_per_cell, render.spp, render.seed, &render.lights);
+            let target = Prepared::new(truth, &scene, &RenderOptions::default()).render(&truth.appearance);
+            let ev = Evaluator::new(scene, target, 2);
+            let mut c = truth.clone();
+            c.hair = Hair::default();
+            fit_hair(&ev, &mut c);
+            c.hair.density
+        };
+        let bare = demo_cloth();
+        assert_eq!(run(&bare), 0.0);
+        let mut hairy = bare.clone();
+        hairy.hair.density = 3.0;
+        assert!(run(&hairy) > 0.0);
+    }
+}
