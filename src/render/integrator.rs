@@ -55,6 +55,9 @@ pub struct PathVertex {
     pub rr: f32,
     /// Position in the tile as fractions (u along x, v along y) for body-colour textures.
     pub uv: [f32; 2],
+    /// A flyaway fibre's vertex ([`Tracer::hair_vertex`]): shaded without the specular
+    /// transmission lobe (see there).
+    pub hair: bool,
 }
 
 /// A recorded path sample: escaped radiance plus vertices.
@@ -326,8 +329,13 @@ impl Tracer<'_> {
     /// tangent along it), with the body colour of the yarn it grows from and no ply or fiber
     /// shadowing (a lone fibre is not shadowed by its neighbours). Its lights are sampled and its
     /// reflection is MIS-weighted as at a yarn's x; the path ends there: the fibre is thin, so the
-    /// refraction into it is not followed, and the light it transmits from behind is the BYSDF's
-    /// transmission lobes (`T^S`, `S^B`) towards the lights. Energy stays within the BYSDF's (≤ 1).
+    /// refraction into it is not followed. The light it passes on from behind is the body
+    /// transmission `(1 − m_r)·S^B/π` only: the specular transmission lobe `T^S` of an x vertex is
+    /// the rough refraction into a yarn's bulk, which keeps a straight-through beam straight; a
+    /// fibre is a thin cylinder, whose two refractions (in and out) fan a beam across its axis
+    /// (the TT lobe of Marschner et al. 2003 spreads over the azimuths), so a back light seen
+    /// through a hair is dimmed, not passed on. Energy stays within the BYSDF's (≤ 1): a lobe is
+    /// dropped, none added.
     #[allow(clippy::too_many_arguments)]
     fn hair_vertex(
         &self,
@@ -364,6 +372,7 @@ impl Tracer<'_> {
             refr: None,
             rr: 1.0,
             uv: self.uv(pt),
+            hair: true,
         }
     }
 
@@ -434,6 +443,7 @@ impl Tracer<'_> {
                 refr: None,
                 rr: 1.0,
                 uv: self.uv(hit.p),
+                hair: false,
             };
             if let Some((rl, _)) = sample_reflection(v, alpha, r1, r2) {
                 vx.lights.1 += self.strategy_hits((here, xw), &frame, rl, &st, &mut buf.lights);
@@ -490,6 +500,7 @@ impl Tracer<'_> {
                 refr: None,
                 rr: 1.0,
                 uv: self.uv(yt),
+                hair: false,
             };
             let Some((ol, pdf)) = sample_transmission(vy, alpha, eta, u1, u2) else {
                 buf.verts.push(vyx);
