@@ -140,12 +140,7 @@ fn hairs_leaving_the_tile_are_met_across_the_seam() {
     shifted.camera.offset = [1.0, -2.0];
     let a = render(&cloth, &scene, &RenderOptions::default());
     let b = render(&cloth, &shifted, &RenderOptions::default());
-    let close = a
-        .data
-        .iter()
-        .zip(&b.data)
-        .filter(|(p, q)| (0..3).all(|k| (p[k] - q[k]).abs() < 1e-3))
-        .count();
+    let close = a.data.iter().zip(&b.data).filter(|(p, q)| (0..3).all(|k| (p[k] - q[k]).abs() < 1e-3)).count();
     assert!(close as f32 >= 0.98 * a.data.len() as f32, "only {close}/{} pixels match", a.data.len());
 }
 

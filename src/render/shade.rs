@@ -6,7 +6,7 @@
 use super::integrator::{LightHit, PathVertex};
 use crate::geometry::yarn::Family;
 use crate::params::{param, Appearance, BodyTexture, N_APPEARANCE};
-use crate::shading::bysdf::{attenuation, eval_with, LocalDirs, Lobes, ShadeParams, VertexKind, VertexTerms};
+use crate::shading::bysdf::{attenuation, eval_with, Lobes, LocalDirs, ShadeParams, VertexKind, VertexTerms};
 use crate::shading::ggx::transmit_cos;
 use crate::shading::real::{Dual, Real};
 
