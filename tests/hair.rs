@@ -173,3 +173,18 @@ fn a_bad_hair_value_is_refused_with_its_name() {
     let typed = good.replace("\"density\": 2.0", "\"density\": \"lots\"");
     assert!(ParamFile::from_json(&typed).is_err());
 }
+
+#[test]
+fn a_hairy_tile_renders_like_the_whole_hairy_fabric() {
+    // Hairs are keyed by yarn and cell modulo the minimum repeat: every repeat of a many-repeat
+    // tile grows the same hairs, so it renders like the one-repeat tile (up to hits that round
+    // differently, as for the bare yarns in tests/render.rs).
+    let mut cloth = ClothParams::preset("twill31").unwrap();
+    cloth.hair.density = 3.0;
+    let mut scene = Scene { width: 48, height: 48, spp: 2, ..Scene::default() };
+    scene.camera.tiles = 3.0;
+    let tile = render(&cloth, &scene, &RenderOptions::default());
+    let whole = render(&cloth, &scene, &RenderOptions { whole_fabric: true, ..Default::default() });
+    let close = tile.data.iter().zip(&whole.data).filter(|(p, q)| (0..3).all(|k| (p[k] - q[k]).abs() < 1e-3)).count();
+    assert!(close as f32 >= 0.95 * tile.data.len() as f32, "only {close}/{} pixels match", tile.data.len());
+}

@@ -20,7 +20,7 @@
 //! on the flattened surface; its round section of radius [`Hair::radius`] becomes an ellipse of
 //! half-height `aspect·radius` in the world, which at a tenth of a yarn radius is below a pixel.
 
-use super::yarn::{YarnSet, PITCH};
+use super::yarn::{Family, YarnSet, PITCH};
 use glam::Vec3;
 
 /// Capsules per hair (a gently curved fibre: the radius, the angle and the axial position are
@@ -112,18 +112,28 @@ pub fn generate(set: &YarnSet, hair: &Hair) -> Vec<HairFibre> {
     if !hair.is_on() {
         return Vec::new();
     }
+    // The minimum repeat in cells along each family (a weft's repeat spans the repeat's columns,
+    // a warp's its rows): hairs are keyed by yarn and cell modulo it, so a tile of several repeats
+    // (an unreduced pattern, or `RenderOptions::whole_fabric`) grows the same hairs in each repeat
+    // and renders like the one-repeat tile.
+    let repeat_cells = |fam: Family| {
+        let y = set.yarns.iter().find(|y| y.family == fam);
+        y.map_or(1, |y| ((y.repeat / PITCH).round() as u64).max(1))
+    };
+    let (cols, rows) = (repeat_cells(Family::Weft), repeat_cells(Family::Warp));
     let mut out = Vec::new();
     for (yi, y) in set.yarns.iter().enumerate() {
         let cells = (y.period() / PITCH).round().max(1.0) as u64;
-        let fam = match y.family {
-            super::yarn::Family::Weft => 0u64,
-            super::yarn::Family::Warp => 1u64 << 32,
+        let (fam, index, along) = match y.family {
+            Family::Weft => (0u64, y.index as u64 % rows, cols),
+            Family::Warp => (1u64 << 32, y.index as u64 % cols, rows),
         };
         for cell in 0..cells {
-            let mut count_draw = Draws::new([fam | y.index as u64, cell, u64::MAX]);
+            let key = [fam | index, cell % along];
+            let mut count_draw = Draws::new([key[0], key[1], u64::MAX]);
             let n = (hair.density + count_draw.next()).floor() as u64;
             for k in 0..n {
-                let mut d = Draws::new([fam | y.index as u64, cell, k]);
+                let mut d = Draws::new([key[0], key[1], k]);
                 let s0 = (cell as f32 + d.next()) * PITCH;
                 let theta0 = std::f32::consts::TAU * d.next();
                 let len = hair.length * (0.5 + d.next());
