@@ -6,6 +6,7 @@
 //! parameters that changes shading only (no re-tracing); the yarn radii and the discrete `n_p`,
 //! `n_f`, `P` change geometry.
 
+use crate::geometry::hair::Hair;
 use crate::geometry::yarn::YarnShape;
 use crate::pattern::WeavePattern;
 use crate::scene::Scene;
@@ -120,6 +121,11 @@ pub struct ClothParams {
     /// keep the defaults (docs/design.md §1.1).
     #[serde(default, skip_serializing_if = "YarnShape::is_default")]
     pub shape: YarnShape,
+    /// Flyaway fibres (hairiness, docs/forward-model.md): hairs per yarn per pitch of length
+    /// ([0, 8], default 0 = off), their mean length ([1, 20], default 6) and radius ([0.02, 0.5],
+    /// default 0.12). Absent from files that keep the defaults.
+    #[serde(default, skip_serializing_if = "Hair::is_default")]
+    pub hair: Hair,
 }
 
 /// Body-colour texture maps (multipliers of the family's `R^B` and `S^B`), one per yarn family,
@@ -500,6 +506,14 @@ impl ClothParams {
         let (c, a) = (YarnShape::CROSSING_RANGE, YarnShape::ASPECT_RANGE);
         check_range("shape.crossing", self.shape.crossing as f64, c.0 as f64, c.1 as f64)?;
         check_range("shape.aspect", self.shape.aspect as f64, a.0 as f64, a.1 as f64)?;
+        let h = &self.hair;
+        for (field, x, (lo, hi)) in [
+            ("hair.density", h.density, Hair::DENSITY_RANGE),
+            ("hair.length", h.length, Hair::LENGTH_RANGE),
+            ("hair.radius", h.radius, Hair::RADIUS_RANGE),
+        ] {
+            check_range(field, x as f64, lo as f64, hi as f64)?;
+        }
         self.appearance.validate()
     }
 
@@ -578,6 +592,7 @@ impl ClothParams {
             appearance: Appearance::default(),
             body_texture: None,
             shape: YarnShape::default(),
+            hair: Hair::default(),
         })
     }
 }

@@ -46,6 +46,7 @@ fn two_colour_cloth(pattern: &str) -> ClothParams {
         appearance: a,
         body_texture: None,
         shape: Default::default(),
+        hair: Default::default(),
     }
 }
 

@@ -220,6 +220,7 @@ impl Recipe {
             appearance: Appearance::from_slice(&v),
             body_texture: None,
             shape: Default::default(),
+            hair: Default::default(),
         };
 
         // Camera: the fit's orthographic top-down view (`fit_scene`) at `px_per_cell` pixels per

@@ -41,6 +41,7 @@ pub fn demo_cloth() -> ClothParams {
         appearance,
         body_texture: None,
         shape: Default::default(),
+        hair: Default::default(),
     }
 }
 
@@ -91,6 +92,7 @@ pub fn random_cloth(rng: &mut StdRng, max_side: usize) -> ClothParams {
         appearance: Appearance::from_slice(&v),
         body_texture: None,
         shape: Default::default(),
+        hair: Default::default(),
     }
 }
 

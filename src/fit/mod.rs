@@ -41,6 +41,7 @@ pub mod demo;
 pub mod eval;
 mod evaluator;
 mod finish;
+mod hair_extra;
 pub mod identify;
 pub mod input;
 mod joint;
@@ -208,6 +209,8 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         finish::polish_winner(&st, &opts.finish, &mut cloth);
         // Optional yarn shape (crossing depth, flattening), kept only where it pays (shape_extra.rs).
         shape_extra::fit_shape(&ev, &mut cloth);
+        // Optional flyaway fibres, their density kept only where it pays (hair_extra.rs).
+        hair_extra::fit_hair(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop);
         if opts.finish.svcolor > 0 {
             cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
         }

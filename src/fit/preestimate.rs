@@ -46,6 +46,7 @@ pub(crate) fn default_cloth(pattern: WeavePattern) -> ClothParams {
         appearance: grey_appearance(),
         body_texture: None,
         shape: Default::default(),
+        hair: Default::default(),
     }
 }
 

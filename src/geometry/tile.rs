@@ -5,6 +5,7 @@
 //! xy-cell finds every tube that reaches into it. A ray leaving the cell re-enters on the opposite
 //! side: one tile of the minimum pattern stands for the whole (infinite) fabric.
 
+use super::hair::{Hair, HairFibre};
 use super::yarn::{YarnSet, PITCH};
 
 /// Capsules per yarn per crossed cell. Shading uses the exact spline tube, so the capsule chain only
@@ -112,14 +113,29 @@ pub struct TubeHit {
     pub t: f32,
     /// Hit point, wrapped into the tile.
     pub p: Vec3,
-    /// Yarn index in [`YarnSet::yarns`].
+    /// Yarn index in [`YarnSet::yarns`] (for a hair: the yarn it grows from).
     pub yarn: usize,
+    /// Set when the ray hit a flyaway fibre ([`crate::geometry::hair`]) rather than a yarn tube.
+    pub hair: Option<HairHit>,
+}
+
+/// Where a ray hit a hair: its id (for [`TileGeometry::closest`]'s `skip`) and its surface frame.
+#[derive(Clone, Copy, Debug)]
+pub struct HairHit {
+    /// Id of the hair for the `skip` argument of [`TileGeometry::closest`] (past the yarn indices).
+    pub id: usize,
+    /// World unit outward normal of the fibre at the hit.
+    pub normal: Vec3,
+    /// World unit tangent of the fibre (root to tip).
+    pub tangent: Vec3,
 }
 
 /// Geometry of one periodic tile: yarn curves, capsules and their BVH.
 pub struct TileGeometry {
     /// The yarn curves.
     pub set: YarnSet,
+    /// The flyaway fibres (empty when the layer is off), unwrapped (see [`TileGeometry::with_hair`]).
+    pub hairs: Vec<HairFibre>,
     caps: Vec<Capsule>,
     bvh: CwBvh,
     z_lo: f32,
@@ -129,6 +145,17 @@ pub struct TileGeometry {
 impl TileGeometry {
     /// Tessellate the yarns and build the BVH.
     pub fn new(set: YarnSet) -> Self {
+        Self::with_hair(set, &Hair::default())
+    }
+
+    /// [`TileGeometry::new`] with the flyaway fibres of `hair` ([`crate::geometry::hair`]) added to
+    /// the BVH as capsule chains whose ids follow the yarns' (hair `h` is id `yarns + h`). A hair
+    /// that reaches out of the tile is added once more for every tile shift that brings part of
+    /// its box back over the tile, so a ray wrapped into the tile meets it on both sides of the
+    /// seam. The slab is raised and lowered to the hairs' tips. Off (density 0): the BVH and
+    /// the slab are exactly the yarns' (renders are unchanged bit for bit).
+    pub fn with_hair(set: YarnSet, hair: &Hair) -> Self {
+        let hairs = super::hair::generate(&set, hair);
         let mut caps = Vec::new();
         for (yi, y) in set.yarns.iter().enumerate() {
             let n = (y.period() / PITCH).round() as i64 * SEGMENTS_PER_CELL as i64;
@@ -139,12 +166,52 @@ impl TileGeometry {
                 caps.push(Capsule::new(y.point(s0).into(), y.point(s1).into(), y.radius, yi as u32));
             }
         }
+        let z = set.z_max() + 0.05;
+        let (mut z_lo, mut z_hi) = (-z, z);
+        let (tx, ty) = (set.tile_x, set.tile_y);
+        let n_yarns = set.yarns.len();
+        for (h, f) in hairs.iter().enumerate() {
+            let r = hair.radius;
+            let lo = f.points.iter().fold(Vec3::splat(f32::INFINITY), |m, p| m.min(*p)) - r;
+            let hi = f.points.iter().fold(Vec3::splat(f32::NEG_INFINITY), |m, p| m.max(*p)) + r;
+            z_lo = z_lo.min(lo.z - 0.05);
+            z_hi = z_hi.max(hi.z + 0.05);
+            // Shifts k·tile with [lo + k·tile, hi + k·tile] overlapping [0, tile].
+            let shifts = |lo: f32, hi: f32, size: f32| (-hi / size).ceil() as i64..=((size - lo) / size).floor() as i64;
+            for kx in shifts(lo.x, hi.x, tx) {
+                for ky in shifts(lo.y, hi.y, ty) {
+                    let off = Vec3A::new(kx as f32 * tx, ky as f32 * ty, 0.0);
+                    for w in f.points.windows(2) {
+                        let (a, b) = (Vec3A::from(w[0]) + off, Vec3A::from(w[1]) + off);
+                        caps.push(Capsule::new(a, b, r, (n_yarns + h) as u32));
+                    }
+                }
+            }
+        }
         let mut t = std::time::Duration::default();
         let bvh = obvhs::cwbvh::builder::build_cwbvh(&caps, BvhBuildParams::fast_build(), &mut t);
         // Reorder once so BVH primitive ids index `caps` directly.
         let caps: Vec<Capsule> = bvh.primitive_indices.iter().map(|&i| caps[i as usize]).collect();
-        let z = set.z_max() + 0.05;
-        TileGeometry { set, caps, bvh, z_lo: -z, z_hi: z }
+        TileGeometry { set, hairs, caps, bvh, z_lo, z_hi }
+    }
+
+    /// The hair-layer frame of a hit on capsule `c` at stretched-space point `p`, in the world.
+    fn hair_hit(&self, c: &Capsule, p: Vec3A) -> HairHit {
+        // Closest point of the capsule's axis: the outward normal is from there to `p`.
+        let u = ((p - c.a).dot(c.ba) / c.baba.max(1e-12)).clamp(0.0, 1.0);
+        let n = (p - (c.a + c.ba * u)).normalize_or(Vec3A::Z);
+        // Hairs live in the stretched space of flattened yarns: normals and tangents map back.
+        let y = &self.set.yarns[self.hair_root(c.yarn as usize)];
+        HairHit {
+            id: c.yarn as usize,
+            normal: y.normal_to_world(n.into()),
+            tangent: y.tangent_to_world(Vec3::from(c.ba).normalize_or(Vec3::X)),
+        }
+    }
+
+    /// The yarn a hair with id `id` grows from (`id` past the yarns: see [`TileGeometry::with_hair`]).
+    fn hair_root(&self, id: usize) -> usize {
+        self.hairs[id - self.set.yarns.len()].yarn
     }
 
     /// Number of capsules in the BVH.
@@ -178,7 +245,7 @@ impl TileGeometry {
         let s = Vec3::new(d.x, d.y, d.z / a);
         let len = s.length();
         let hit = self.closest_round(Vec3::new(o.x, o.y, o.z / a), s / len, skip.map(|(y, t)| (y, t * len)))?;
-        Some(TubeHit { t: hit.t / len, p: Vec3::new(hit.p.x, hit.p.y, hit.p.z * a), yarn: hit.yarn })
+        Some(TubeHit { t: hit.t / len, p: Vec3::new(hit.p.x, hit.p.y, hit.p.z * a), ..hit })
     }
 
     /// [`TileGeometry::closest`] in the stretched space where the tubes are round.
@@ -224,13 +291,20 @@ impl TileGeometry {
                     }
                 }
                 if t < r.tmax && t < best.0 {
-                    best = (t, c.yarn as usize);
+                    best = (t, id);
                 }
                 t
             });
             if best.0.is_finite() {
+                let c = &self.caps[best.1];
                 let p = self.wrap(o + d * best.0);
-                return Some(TubeHit { t: travelled + best.0, p, yarn: best.1 });
+                let yarn = c.yarn as usize;
+                if yarn < self.set.yarns.len() {
+                    return Some(TubeHit { t: travelled + best.0, p, yarn, hair: None });
+                }
+                // The frame from the unwrapped point: the capsule may be a copy shifted off the tile.
+                let hh = self.hair_hit(c, oa + da * best.0);
+                return Some(TubeHit { t: travelled + best.0, p, yarn: self.hair_root(yarn), hair: Some(hh) });
             }
             if t_slab <= t_cell {
                 return None;

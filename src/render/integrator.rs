@@ -55,6 +55,9 @@ pub struct PathVertex {
     pub rr: f32,
     /// Position in the tile as fractions (u along x, v along y) for body-colour textures.
     pub uv: [f32; 2],
+    /// A flyaway fibre's vertex ([`Tracer::hair_vertex`]): shaded without the specular
+    /// transmission lobe (see there).
+    pub hair: bool,
 }
 
 /// A recorded path sample: escaped radiance plus vertices.
@@ -163,6 +166,15 @@ impl Strategies {
     }
 }
 
+/// The surface a path vertex lies on, for its shadow rays.
+#[derive(Clone, Copy)]
+enum Surface {
+    /// Yarn `yarn` at tile point `pt`.
+    Yarn { yarn: usize, pt: Vec3 },
+    /// The flyaway fibre with id `id` ([`crate::geometry::tile::HairHit::id`]).
+    Hair { id: usize },
+}
+
 /// Deterministic per-sample random numbers.
 pub fn sample_rng(seed: u64, pixel: u64, sample: u64) -> SmallRng {
     let mut h = seed ^ 0x9E37_79B9_7F4A_7C15;
@@ -183,28 +195,40 @@ impl Tracer<'_> {
         self.geom.set.yarns[yarn].tube_normal(p)
     }
 
-    /// Visibility along `dir` from world point `pw` (tile point `pt`) on yarn `yarn`, testing the
-    /// implicit plies at every tube crossing (ply visibility `V_p`, docs/design.md §1.7, ambiguity 17).
-    fn visible(&self, yarn: usize, pw: Vec3, pt: Vec3, nt: Vec3, dir: Vec3, max_dist: f32) -> bool {
-        let own = &self.geom.set.yarns[yarn];
+    /// Visibility along `dir` from world point `pw` on `surface`, testing the implicit plies at
+    /// every tube crossing (ply visibility `V_p`, docs/design.md §1.7, ambiguity 17). From a yarn
+    /// (tile point `pt`, tube normal `nt`), a direction into its own tube is blocked where it meets
+    /// a ply and otherwise leaves through the far wall; from a hair, the ray leaves the fibre
+    /// (a hair does not shadow itself). Hairs on the way block the ray: a fibre is opaque to
+    /// shadow rays, as a ply is.
+    fn visible(&self, surface: Surface, pw: Vec3, nt: Vec3, dir: Vec3, max_dist: f32) -> bool {
         let mut start = pw;
-        let mut skip = Some((yarn, 1e-2));
         let mut travelled = 0.0;
-        if dir.dot(nt) < 0.0 {
-            // Towards the inside of its own yarn: blocked where the line meets a ply.
-            if self.plies.blocks(own, pt, dir) {
-                return false;
+        let mut skip = match surface {
+            Surface::Yarn { yarn, .. } => Some((yarn, 1e-2)),
+            Surface::Hair { id } => Some((id, f32::INFINITY)),
+        };
+        match surface {
+            Surface::Yarn { yarn, pt } if dir.dot(nt) < 0.0 => {
+                // Towards the inside of its own yarn: blocked where the line meets a ply.
+                let own = &self.geom.set.yarns[yarn];
+                if self.plies.blocks(own, pt, dir) {
+                    return false;
+                }
+                let te = self.geom.exit_tube(yarn, pt, dir);
+                start = pw + dir * (te + EPS);
+                travelled = te + EPS;
             }
-            let te = self.geom.exit_tube(yarn, pt, dir);
-            start = pw + dir * (te + EPS);
-            travelled = te + EPS;
-        } else {
-            start += nt * EPS;
+            Surface::Hair { .. } if dir.dot(nt) < 0.0 => start += dir * EPS,
+            _ => start += nt * EPS,
         }
         for _ in 0..32 {
             let Some(hit) = self.geom.closest(start, dir, skip) else { return true };
             if travelled + hit.t >= max_dist {
                 return true;
+            }
+            if hit.hair.is_some() {
+                return false;
             }
             let y = &self.geom.set.yarns[hit.yarn];
             if self.plies.blocks(y, hit.p, dir) {
@@ -226,9 +250,8 @@ impl Tracer<'_> {
     fn sample_lights(
         &self,
         rng: &mut SmallRng,
-        yarn: usize,
+        surface: Surface,
         pw: Vec3,
-        pt: Vec3,
         frame: &Frame,
         st: &Strategies,
         out: &mut Vec<LightHit>,
@@ -257,7 +280,7 @@ impl Tracer<'_> {
                 continue;
             }
             let l = frame.to_local(ls.dir);
-            if l.z == 0.0 || !self.visible(yarn, pw, pt, st.nt, ls.dir, ls.dist) {
+            if l.z == 0.0 || !self.visible(surface, pw, st.nt, ls.dir, ls.dist) {
                 continue;
             }
             let mis = match light.mis_pdf(l.z) {
@@ -274,13 +297,13 @@ impl Tracer<'_> {
     /// to `out` and returns how many hits were added.
     fn strategy_hits(
         &self,
-        at: (usize, Vec3, Vec3),
+        at: (Surface, Vec3),
         frame: &Frame,
         dir: Vec3,
         st: &Strategies,
         out: &mut Vec<LightHit>,
     ) -> u32 {
-        let (yarn, pw, pt) = at;
+        let (surface, pw) = at;
         let dw = frame.to_world(dir);
         let p_own = st.pdf(dir, dw);
         let mut n = 0;
@@ -291,7 +314,7 @@ impl Tracer<'_> {
             if le.iter().all(|&x| x <= 0.0) || p_l + p_own <= 0.0 {
                 continue;
             }
-            if !*visible.get_or_insert_with(|| self.visible(yarn, pw, pt, st.nt, dw, f32::INFINITY)) {
+            if !*visible.get_or_insert_with(|| self.visible(surface, pw, st.nt, dw, f32::INFINITY)) {
                 return n;
             }
             let w = 1.0 / (p_l + p_own);
@@ -299,6 +322,58 @@ impl Tracer<'_> {
             n += 1;
         }
         n
+    }
+
+    /// The shading vertex where a path meets a flyaway fibre (docs/forward-model.md, "Flyaway
+    /// fibres"): an entry vertex x of the BYSDF in the fibre's own frame (normal out of the fibre,
+    /// tangent along it), with the body colour of the yarn it grows from and no ply or fiber
+    /// shadowing (a lone fibre is not shadowed by its neighbours). Its lights are sampled and its
+    /// reflection is MIS-weighted as at a yarn's x; the path ends there: the fibre is thin, so the
+    /// refraction into it is not followed. The light it passes on from behind is the body
+    /// transmission `(1 − m_r)·S^B/π` only: the specular transmission lobe `T^S` of an x vertex is
+    /// the rough refraction into a yarn's bulk, which keeps a straight-through beam straight; a
+    /// fibre is a thin cylinder, whose two refractions (in and out) fan a beam across its axis
+    /// (the TT lobe of Marschner et al. 2003 spreads over the azimuths), so a back light seen
+    /// through a hair is dimmed, not passed on. Energy stays within the BYSDF's (≤ 1): a lobe is
+    /// dropped, none added.
+    #[allow(clippy::too_many_arguments)]
+    fn hair_vertex(
+        &self,
+        rng: &mut SmallRng,
+        family: Family,
+        hh: crate::geometry::tile::HairHit,
+        xw: Vec3,
+        pt: Vec3,
+        ray_d: Vec3,
+        out: &mut Vec<LightHit>,
+    ) -> PathVertex {
+        // Facing the ray: a ray that starts inside a fibre (from a surface in contact) meets its
+        // far wall, whose geometric normal points away.
+        let n = if hh.normal.dot(ray_d) > 0.0 { -hh.normal } else { hh.normal };
+        let frame = Frame::new(n, hh.tangent);
+        let v = frame.to_local(-ray_d);
+        let alpha = self.sampling.alpha_s;
+        let st = Strategies { v, nt: n, refl: Some(alpha), refr: None, inward: true };
+        let here = Surface::Hair { id: hh.id };
+        let mut lights = self.sample_lights(rng, here, xw, &frame, &st, out);
+        let (r1, r2) = (rng.random::<f32>(), rng.random::<f32>());
+        if let Some((rl, _)) = sample_reflection(v, alpha, r1, r2) {
+            lights.1 += self.strategy_hits((here, xw), &frame, rl, &st, out);
+        }
+        PathVertex {
+            kind: VertexKind::X,
+            family,
+            v,
+            ao_p: 1.0,
+            ao_f: 1.0,
+            chord: 0.0,
+            n_i: 0,
+            lights,
+            refr: None,
+            rr: 1.0,
+            uv: self.uv(pt),
+            hair: true,
+        }
     }
 
     /// Trace one camera sample through pixel position `(px, py)` into `buf`. `fiber_phase` ∈ [0, 1)
@@ -330,6 +405,10 @@ impl Tracer<'_> {
             };
             let yarn = &self.geom.set.yarns[hit.yarn];
             let xw = ray_o + ray_d * hit.t;
+            if let Some(hh) = hit.hair {
+                buf.verts.push(self.hair_vertex(rng, yarn.family, hh, xw, hit.p, ray_d, &mut buf.lights));
+                return;
+            }
             // Only the first vertex sees the pixel's footprint; deeper vertices sample their fiber
             // where the path lands, which is already spread over the fibers by the refraction.
             let footprint = (depth == 0).then_some((self.footprint, fiber_phase));
@@ -348,7 +427,8 @@ impl Tracer<'_> {
             let (alpha, eta) = (self.sampling.alpha_s, self.sampling.eta_s);
             let st =
                 Strategies { v, nt, refl: Some(alpha), refr: self.transmission.then_some((alpha, eta)), inward: true };
-            let lights = self.sample_lights(rng, hit.yarn, xw, hit.p, &frame, &st, &mut buf.lights);
+            let here = Surface::Yarn { yarn: hit.yarn, pt: hit.p };
+            let lights = self.sample_lights(rng, here, xw, &frame, &st, &mut buf.lights);
             let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
             let (r1, r2) = (rng.random::<f32>(), rng.random::<f32>());
             let mut vx = PathVertex {
@@ -363,9 +443,10 @@ impl Tracer<'_> {
                 refr: None,
                 rr: 1.0,
                 uv: self.uv(hit.p),
+                hair: false,
             };
             if let Some((rl, _)) = sample_reflection(v, alpha, r1, r2) {
-                vx.lights.1 += self.strategy_hits((hit.yarn, xw, hit.p), &frame, rl, &st, &mut buf.lights);
+                vx.lights.1 += self.strategy_hits((here, xw), &frame, rl, &st, &mut buf.lights);
             }
             if !self.transmission {
                 buf.verts.push(vx);
@@ -382,7 +463,7 @@ impl Tracer<'_> {
                 buf.verts.push(vx);
                 return;
             }
-            vx.lights.1 += self.strategy_hits((hit.yarn, xw, hit.p), &frame, tl, &st, &mut buf.lights);
+            vx.lights.1 += self.strategy_hits((here, xw), &frame, tl, &st, &mut buf.lights);
             if buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vx);
                 return;
@@ -404,7 +485,8 @@ impl Tracer<'_> {
             let vy = fy.to_local(-tw);
             let (alpha, eta) = (self.sampling.alpha_s_y, self.sampling.eta_s_y);
             let st = Strategies { v: vy, nt: ny, refl: None, refr: Some((alpha, eta)), inward: false };
-            let lights = self.sample_lights(rng, hit.yarn, yw, yt, &fy, &st, &mut buf.lights);
+            let exit = Surface::Yarn { yarn: hit.yarn, pt: yt };
+            let lights = self.sample_lights(rng, exit, yw, &fy, &st, &mut buf.lights);
             let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
             let mut vyx = PathVertex {
                 kind: VertexKind::Y,
@@ -418,6 +500,7 @@ impl Tracer<'_> {
                 refr: None,
                 rr: 1.0,
                 uv: self.uv(yt),
+                hair: false,
             };
             let Some((ol, pdf)) = sample_transmission(vy, alpha, eta, u1, u2) else {
                 buf.verts.push(vyx);
@@ -428,7 +511,7 @@ impl Tracer<'_> {
                 buf.verts.push(vyx);
                 return;
             }
-            vyx.lights.1 += self.strategy_hits((hit.yarn, yw, yt), &fy, ol, &st, &mut buf.lights);
+            vyx.lights.1 += self.strategy_hits((exit, yw), &fy, ol, &st, &mut buf.lights);
             if buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vyx);
                 return;

@@ -81,7 +81,7 @@ impl Prepared {
             cloth.pattern.clone()
         };
         let set = YarnSet::with_shape(&pattern, cloth.r_e, cloth.r_a, cloth.shape);
-        let geom = TileGeometry::new(set);
+        let geom = TileGeometry::with_hair(set, &cloth.hair);
         let (tx, ty) = (cloth.pattern.n_a() as f32 * 10.0, cloth.pattern.n_e() as f32 * 10.0);
         let camera = Camera::new(&scene.camera, scene.width, scene.height, tx, ty, geom.z_top());
         let footprint = if scene.footprint_filter { camera.pixel_footprint() } else { 0.0 };

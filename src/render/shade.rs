@@ -6,7 +6,7 @@
 use super::integrator::{LightHit, PathVertex};
 use crate::geometry::yarn::Family;
 use crate::params::{param, Appearance, BodyTexture, N_APPEARANCE};
-use crate::shading::bysdf::{attenuation, eval_with, LocalDirs, ShadeParams, VertexKind, VertexTerms};
+use crate::shading::bysdf::{attenuation, eval_with, Lobes, LocalDirs, ShadeParams, VertexKind, VertexTerms};
 use crate::shading::ggx::transmit_cos;
 use crate::shading::real::{Dual, Real};
 
@@ -21,6 +21,15 @@ fn multiplier(tex: Option<&BodyTexture>, vx: &PathVertex) -> [f32; 3] {
         (Some(t), Some((Family::Weft, i))) => t.weft[i],
         (Some(t), Some((Family::Warp, i))) => t.warp[i],
         _ => [1.0; 3],
+    }
+}
+
+/// A flyaway fibre's vertex has no specular transmission lobe (`Tracer::hair_vertex` says why):
+/// zero the specular part of a light sample on the other side of the fibre.
+#[inline]
+fn drop_hair_transmission<T: Real>(vx: &PathVertex, lh: &LightHit, lobes: &mut Lobes<T>) {
+    if vx.hair && lh.l.z * vx.v.z < 0.0 {
+        lobes.spec = [T::c(0.0); 3];
     }
 }
 
@@ -71,7 +80,8 @@ pub fn shade_path<T: Real>(
         let mut body_sum = [0.0f32; 3];
         let pre = VertexTerms::new(p, vx.kind, vx.family, vx.v, vx.ao_p, vx.ao_f);
         for lh in &lights[start as usize..(start + count) as usize] {
-            let lobes = eval_with(p, vx.kind, vx.family, LocalDirs { v: vx.v, l: lh.l }, &pre);
+            let mut lobes = eval_with(p, vx.kind, vx.family, LocalDirs { v: vx.v, l: lh.l }, &pre);
+            drop_hair_transmission(vx, lh, &mut lobes);
             for k in 0..3 {
                 let body = thr[k] * tb * lobes.body[k] * lh.w[k];
                 out[k] += thr[k] * ts * lobes.spec[k] * lh.w[k] + body * m[k];
@@ -197,7 +207,8 @@ pub fn shade_path_gradient(
             let mut spec = [Dual::<N_LOCAL>::c(0.0); 3];
             let mut body = [Dual::<N_LOCAL>::c(0.0); 3];
             for lh in &lights[start as usize..(start + count) as usize] {
-                let lobes = eval_with(lp, vx.kind, vx.family, LocalDirs { v: vx.v, l: lh.l }, &pre);
+                let mut lobes = eval_with(lp, vx.kind, vx.family, LocalDirs { v: vx.v, l: lh.l }, &pre);
+                drop_hair_transmission(vx, lh, &mut lobes);
                 for k in 0..3 {
                     spec[k] += lobes.spec[k] * lh.w[k];
                     body[k] += lobes.body[k] * (lh.w[k] * m[k]);
