@@ -288,3 +288,26 @@ fn crop_sharpness() {
         }
     }
 }
+
+/// The issue's own check, preparation's part: `woven render --params P --width 256 --height 256`
+/// of a preset (default scene: default rig, two repeats across) must come back with the preset's
+/// grid. Satin 8 came back 2×8: 14 whole cells per axis, short of the 16 that see its 8-cell
+/// repeat twice, so the cells gave no repeat along y and the pixel distance matching function's
+/// 2 rows stood (`prep::cells`, the partial-repeat pass). The presets of 4–8 yarns only (2 spp,
+/// ~20 s of renders): plain, basket 2 and twill 2/2 are covered above.
+#[test]
+fn presets_rendered_two_repeats_wide_get_their_grid() {
+    let mut failures = Vec::new();
+    for preset in ["twill31", "satin4", "satin5", "satin8"] {
+        let cloth = ClothParams::preset(preset).unwrap();
+        let want = (cloth.pattern.n_e(), cloth.pattern.n_a());
+        let scene = Scene { width: 256, height: 256, spp: 2, ..Scene::default() };
+        let img = render(&cloth, &scene, &RenderOptions::default());
+        match prepare(&img.to_rgb32f(), &PrepOptions::default()) {
+            Ok(p) if (p.n_e, p.n_a) == want => {}
+            Ok(p) => failures.push(format!("{preset}: {}×{} (want {}×{})", p.n_e, p.n_a, want.0, want.1)),
+            Err(e) => failures.push(format!("{preset}: {e}")),
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

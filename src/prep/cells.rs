@@ -18,10 +18,12 @@
 //!
 //! The repeat along x is the smallest `n ≥ 2` whose shifted matrix correlates with itself
 //! (Pearson over the overlapping cells) at ≥ [`MIN_CELL_CORR`], whose multiples correlate on
-//! average at ≥ 0.8 of the best shift, and
-//! that fits twice in the matrix, clearly above the shifts that are not its multiples (the *baseline*, their median, at least
-//! [`MIN_CELL_EXCESS`] lower). A half-twill lattice (2×2 on a twill) fails the test: shifting a
-//! twill by two yarns does not map it onto itself, so `c(2)` stays near the baseline.
+//! average at ≥ 0.8 of the best shift, and that fits twice in the matrix, clearly above the shifts
+//! that are not its multiples (the *baseline*, their median, at least [`MIN_CELL_EXCESS`] lower).
+//! A half-twill lattice (2×2 on a twill) fails the test: shifting a twill by two yarns does not
+//! map it onto itself, so `c(2)` stays near the baseline. Where no repeat is seen twice, one seen
+//! 1.5–2 times can be taken on stronger evidence (a near copy, [`MIN_PARTIAL_CORR`]; see
+//! [`CellMatrix::partial_repeat`]).
 
 use super::image_ops::Gray;
 
@@ -32,6 +34,10 @@ pub const MIN_CELL_CORR: f64 = 0.4;
 /// Smallest excess of the repeat's correlation over the median of the shifts that are not its
 /// multiples.
 pub const MIN_CELL_EXCESS: f64 = 0.3;
+/// Smallest correlation of a repeat seen less than twice ([`CellMatrix::repeat`]): its overlap is
+/// the only evidence, so it must be nearly a copy (clean renders of a repeat measure 0.9 and more,
+/// the partial copies of a satin below 0).
+pub const MIN_PARTIAL_CORR: f64 = 0.7;
 
 /// The cell matrix: `o` per cell, rows top to bottom, columns left to right.
 #[derive(Clone, Debug, PartialEq)]
@@ -119,15 +125,33 @@ impl CellMatrix {
         (saa > 1e-12 && sbb > 1e-12).then(|| sab / (saa * sbb).sqrt())
     }
 
-    /// The repeat along x (`axis_x`) or y in cells, with its correlation, by the rule of the
-    /// module docs; `None` when no shift up to `max_n` qualifies.
-    pub fn repeat(&self, axis_x: bool, max_n: usize) -> Option<(usize, f64)> {
+    /// The correlations `(n, c(n))` of the shifts up to `max_n` along x (`axis_x`) or y.
+    fn shift_corrs(&self, axis_x: bool, max_n: usize) -> Vec<(usize, f64)> {
         // Shifts beyond the matrix have no overlap (and `max_n` may be unbounded).
         let max_n = max_n.min(if axis_x { self.cols } else { self.rows });
-        let c: Vec<(usize, f64)> = (1..=max_n).filter_map(|n| self.shift_corr(axis_x, n).map(|v| (n, v))).collect();
+        (1..=max_n).filter_map(|n| self.shift_corr(axis_x, n).map(|v| (n, v))).collect()
+    }
+
+    /// The repeat along x (`axis_x`) or y in cells, seen whole twice, with its correlation, by the
+    /// rule of the module docs; `None` when no shift up to `max_n` qualifies.
+    pub fn repeat(&self, axis_x: bool, max_n: usize) -> Option<(usize, f64)> {
+        self.whole_repeat(axis_x, &self.shift_corrs(axis_x, max_n))
+    }
+
+    /// A repeat up to `max_n` cells seen only 1.5–2 times, with its correlation (see
+    /// [`Self::partial_pass`]); for the caller to use where no repeat is seen twice and the
+    /// image's other evidence is contradicted by the cells.
+    pub fn partial_repeat(&self, axis_x: bool, max_n: usize) -> Option<(usize, f64)> {
+        self.partial_pass(axis_x, &self.shift_corrs(axis_x, max_n))
+    }
+
+    /// The repeat among the shifts `c` (`(n, c(n))`) that is seen whole twice, by the rule of the
+    /// module docs.
+    fn whole_repeat(&self, axis_x: bool, c: &[(usize, f64)]) -> Option<(usize, f64)> {
         let best = c.iter().map(|x| x.1).fold(f64::MIN, f64::max);
-        // A repeat must be seen whole twice (`2n` cells): with less overlap a random figured
-        // repeat (12×10 cells, shift 6: 4 columns in common) correlated by chance.
+        // A repeat must be seen whole twice (`2n` cells) here: with less overlap a random figured
+        // repeat (12×10 cells, shift 6: 4 columns in common) correlated by chance at the floors
+        // below; `partial_pass` takes the repeats seen 1.5–2 times, on stronger evidence.
         let along = if axis_x { self.cols } else { self.rows };
         for &(n, v) in c.iter().filter(|x| x.0 >= 2 && 2 * x.0 <= along) {
             // A true repeat's multiples are copies too, so their mean correlation is near the
@@ -140,6 +164,43 @@ impl CellMatrix {
                 continue;
             }
             let mut others: Vec<f64> = c.iter().filter(|x| x.0 % n != 0).map(|x| x.1).collect();
+            if others.is_empty() {
+                return None;
+            }
+            others.sort_by(f64::total_cmp);
+            if v - others[others.len() / 2] >= MIN_CELL_EXCESS {
+                return Some((n, v));
+            }
+        }
+        None
+    }
+
+    /// A repeat seen once whole and at least half again (`1.5 n ≤ along < 2 n` cells), for where
+    /// no repeat is seen twice ([`Self::whole_repeat`]).
+    ///
+    /// Why: a satin 8 photographed two repeats wide at 16 px per yarn holds 14–15 whole cells along
+    /// an axis (the image edges cut the first and last), short of `2n`; its repeat went unseen
+    /// and the pixel distance matching function's answer stood (2 rows: every row of a satin looks
+    /// alike in the pixels, while its cells shifted by 2 rows correlate at about −1/7). The
+    /// evidence is the `(along − n)·across` cells the shift maps onto copies, so the shift must
+    /// match them nearly all: correlation ≥ [`MIN_PARTIAL_CORR`], above every smaller shift, at
+    /// least [`MIN_CELL_EXCESS`] above the median of the other shifts, and at least `n/2` lines in
+    /// common (`tests::a_random_figure_seen_once_has_no_partial_repeat` holds a figure seen once
+    /// to no repeat).
+    ///
+    /// It is weaker evidence than a repeat seen twice: on a photo whose first pitch is a few per
+    /// cent short the cells drift across the image and a drifted shift can pass it (synthetic
+    /// survey target 16: a 4-yarn repeat at a pitch 6 % short gave 9), so preparation uses it only
+    /// where the pixel period is no copy of the cells (`prep::prepare`).
+    fn partial_pass(&self, axis_x: bool, c: &[(usize, f64)]) -> Option<(usize, f64)> {
+        let along = if axis_x { self.cols } else { self.rows };
+        for &(n, v) in c.iter().filter(|x| x.0 >= 2 && 2 * x.0 > along && 2 * (along - x.0) >= x.0) {
+            // No smaller shift may come close: those are not copies of a repeat of n cells.
+            let below = c.iter().filter(|x| x.0 < n).map(|x| x.1).fold(f64::MIN, f64::max);
+            if v < MIN_PARTIAL_CORR || below >= v {
+                continue;
+            }
+            let mut others: Vec<f64> = c.iter().filter(|x| x.0 != n).map(|x| x.1).collect();
             if others.is_empty() {
                 return None;
             }
@@ -176,6 +237,51 @@ mod tests {
                 assert!(c2 < 0.0, "twill shifted by two yarns: {c2}");
             }
         }
+    }
+
+    /// Satin 8 (step 3): row `i` has its one warp-on-top cell at column `3i mod 8`.
+    fn satin8() -> Vec<Vec<u8>> {
+        (0..8).map(|i| (0..8).map(|j| u8::from(j != (3 * i) % 8)).collect()).collect()
+    }
+
+    #[test]
+    fn a_satin_seen_less_than_twice_gets_its_repeat() {
+        // Satin 8 at 16 px per yarn over 248 px: 15 whole cells per axis (the last is cut in
+        // half), one short of seeing the 8-cell repeat twice: only the partial pass finds it
+        // (before it, preparation kept the pixel DMF's 2 rows).
+        let g = grey(&satin8(), 16.0, 248);
+        let m = cell_matrix(&g, [16.0, 16.0], [0.0, 0.0]).unwrap();
+        assert_eq!((m.rows, m.cols), (15, 15));
+        for axis_x in [true, false] {
+            assert_eq!(m.repeat(axis_x, 12), None, "not seen twice");
+            let r = m.partial_repeat(axis_x, 12);
+            assert_eq!(r.map(|r| r.0), Some(8), "axis_x={axis_x}: {r:?}");
+            assert!(r.unwrap().1 > 0.9, "{r:?}");
+            // The satin's rows shifted by two are no copy (ideal −1/7).
+            assert!(m.shift_corr(axis_x, 2).unwrap() < 0.0);
+        }
+    }
+
+    #[test]
+    fn a_random_figure_seen_once_has_no_partial_repeat() {
+        // Random 12×12 figures filling the image once: no shift is a repeat, on either axis.
+        use rand::prelude::*;
+        let mut worst = f64::MIN;
+        for seed in 0..12 {
+            let mut rng = StdRng::seed_from_u64(seed);
+            let p: Vec<Vec<u8>> = (0..12).map(|_| (0..12).map(|_| rng.random_range(0..2u8)).collect()).collect();
+            let g = grey(&p, 16.0, 192);
+            let m = cell_matrix(&g, [16.0, 16.0], [0.0, 0.0]).unwrap();
+            for axis_x in [true, false] {
+                assert_eq!(m.repeat(axis_x, 12), None, "seed {seed} axis_x={axis_x}");
+                assert_eq!(m.partial_repeat(axis_x, 12), None, "seed {seed} axis_x={axis_x}");
+                for n in 7..=8 {
+                    worst = worst.max(m.shift_corr(axis_x, n).unwrap());
+                }
+            }
+        }
+        // The partial pass's floor sits well above what chance gives at its shifts.
+        assert!(worst < MIN_PARTIAL_CORR - 0.1, "largest chance correlation {worst}");
     }
 
     #[test]

@@ -373,8 +373,17 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let mut n_cells = [None; 2];
     if let Some(m) = &cm {
         for (k, (axis_x, per, a)) in [(true, &mut per_x, &ax0), (false, &mut per_y, &ay0)].into_iter().enumerate() {
-            if let Some((n, c)) = m.repeat(axis_x, opts.max_photo_yarns) {
-                let n_dmf = (per.period / a.pitch).round() as usize;
+            let n_dmf = (per.period / a.pitch).round() as usize;
+            // A repeat seen only 1.5–2 times is weaker evidence than the pixel period (a drifting
+            // grid can pass it), so it is taken only where there is no pixel repeat or the cells
+            // contradict it: the pixel period's shift is no copy of the cells (a satin's rows
+            // all look alike in the pixels, its cells shifted by 2 rows correlate below 0).
+            let dmf_contradicted =
+                !per.repeated || m.shift_corr(axis_x, n_dmf).is_none_or(|c| c < cells::MIN_CELL_CORR);
+            let found = m
+                .repeat(axis_x, opts.max_photo_yarns)
+                .or_else(|| dmf_contradicted.then(|| m.partial_repeat(axis_x, opts.max_photo_yarns)).flatten());
+            if let Some((n, c)) = found {
                 if !per.repeated || n_dmf != n {
                     *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
                 }
