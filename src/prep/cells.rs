@@ -139,7 +139,7 @@ impl CellMatrix {
     }
 
     /// A repeat up to `max_n` cells seen only 1.5–2 times, with its correlation (see
-    /// [`Self::partial_pass`]); for the caller to use where no repeat is seen twice and the
+    /// `Self::partial_pass`); for the caller to use where no repeat is seen twice and the
     /// image's other evidence is contradicted by the cells.
     pub fn partial_repeat(&self, axis_x: bool, max_n: usize) -> Option<(usize, f64)> {
         self.partial_pass(axis_x, &self.shift_corrs(axis_x, max_n))

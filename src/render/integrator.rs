@@ -55,7 +55,7 @@ pub struct PathVertex {
     pub rr: f32,
     /// Position in the tile as fractions (u along x, v along y) for body-colour textures.
     pub uv: [f32; 2],
-    /// A flyaway fibre's vertex ([`Tracer::hair_vertex`]): shaded without the specular
+    /// A flyaway fibre's vertex (`Tracer::hair_vertex`): shaded without the specular
     /// transmission lobe (see there).
     pub hair: bool,
 }
