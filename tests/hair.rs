@@ -7,19 +7,12 @@ use woven::geometry::tile::TileGeometry;
 use woven::geometry::yarn::YarnSet;
 use woven::params::{ClothParams, ParamFile};
 use woven::render::{render, RenderOptions};
-use woven::scene::{LightRig, LightSpec, Scene};
+use woven::scene::{LightRig, Scene};
 use woven::{Image, WeavePattern};
 
+/// The rig's back light alone, without the ambient term.
 fn back_only() -> LightRig {
-    LightRig {
-        ambient: [0.0; 3],
-        lights: vec![LightSpec::Directional {
-            name: "back".into(),
-            direction: [0.0, 0.0, -1.0],
-            irradiance: [2.0; 3],
-            cone_deg: 20.0,
-        }],
-    }
+    LightRig { ambient: [0.0; 3], ..LightRig::named("back").unwrap() }
 }
 
 /// An open plain weave (radius 2.5 on pitch 10: wide gaps) with `density` hairs per yarn per pitch.

@@ -41,16 +41,9 @@ fn tiles_are_seamless() {
     assert!(half.data.iter().all(|p| p.iter().all(|v| v.is_finite())));
 }
 
+/// The rig's back light alone, without the ambient term.
 fn back_only() -> LightRig {
-    LightRig {
-        ambient: [0.0; 3],
-        lights: vec![LightSpec::Directional {
-            name: "back".into(),
-            direction: [0.0, 0.0, -1.0],
-            irradiance: [2.0; 3],
-            cone_deg: 20.0,
-        }],
-    }
+    LightRig { ambient: [0.0; 3], ..LightRig::named("back").unwrap() }
 }
 
 #[test]

@@ -163,13 +163,10 @@ impl CellMatrix {
             if v < MIN_CELL_CORR || mean_mult < 0.8 * best {
                 continue;
             }
-            let mut others: Vec<f64> = c.iter().filter(|x| x.0 % n != 0).map(|x| x.1).collect();
-            if others.is_empty() {
-                return None;
-            }
-            others.sort_by(f64::total_cmp);
-            if v - others[others.len() / 2] >= MIN_CELL_EXCESS {
-                return Some((n, v));
+            match excess_over_median(c, v, |s| s % n != 0) {
+                None => return None,
+                Some(e) if e >= MIN_CELL_EXCESS => return Some((n, v)),
+                Some(_) => {}
             }
         }
         None
@@ -200,17 +197,25 @@ impl CellMatrix {
             if v < MIN_PARTIAL_CORR || below >= v {
                 continue;
             }
-            let mut others: Vec<f64> = c.iter().filter(|x| x.0 != n).map(|x| x.1).collect();
-            if others.is_empty() {
-                return None;
-            }
-            others.sort_by(f64::total_cmp);
-            if v - others[others.len() / 2] >= MIN_CELL_EXCESS {
-                return Some((n, v));
+            match excess_over_median(c, v, |s| s != n) {
+                None => return None,
+                Some(e) if e >= MIN_CELL_EXCESS => return Some((n, v)),
+                Some(_) => {}
             }
         }
         None
     }
+}
+
+/// How far the correlation `v` of a shift stands above the median correlation of the shifts
+/// `other` selects among `c` (`(shift, correlation)` pairs); `None` when it selects none.
+fn excess_over_median(c: &[(usize, f64)], v: f64, other: impl Fn(usize) -> bool) -> Option<f64> {
+    let mut others: Vec<f64> = c.iter().filter(|x| other(x.0)).map(|x| x.1).collect();
+    if others.is_empty() {
+        return None;
+    }
+    others.sort_by(f64::total_cmp);
+    Some(v - others[others.len() / 2])
 }
 
 #[cfg(test)]
