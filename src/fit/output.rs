@@ -121,7 +121,7 @@ pub fn registered_render(res: &FitResult, size: (u32, u32), threads: Option<usiz
 
 /// [`registered_render`] without the fit's blur: the cloth as the fit models it, seen by a sharp
 /// camera. What a sharp input (a render by another renderer) is compared with pixel for pixel
-/// (`renders::colour_error`): the blur moves colour across yarn edges, from the backdrop into the
+/// (`renders::family_colours`): the blur moves colour across yarn edges, from the backdrop into the
 /// yarns' edge pixels, which a sharp input does not have.
 pub fn registered_render_sharp(res: &FitResult, size: (u32, u32), threads: Option<usize>) -> Option<Image> {
     register(res, size, threads, false)
