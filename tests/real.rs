@@ -109,6 +109,14 @@ fn eval_real_on_a_folder_of_renders() {
     // Outputs: each fit in its folder, fit.png the photo's size, the failed one's overlay.
     let fit_png = image::open(save.join("sub/twill/fit.png")).unwrap();
     assert_eq!((fit_png.width(), fit_png.height()), (192, 192));
+    // fit.png is the image the whole-photo figures score (up to its 8-bit rounding); the photo
+    // noise of noise.json goes to fit_noise.png, which then differs from it.
+    let load = |f: &str| Image::load(&save.join("sub/twill").join(f), 1).unwrap();
+    let photo_img = Image::load(&dir.join("sub/twill.png"), 1).unwrap();
+    let scored = c[1].photo.unwrap().psnr_db;
+    let (clean, noisy) = (load("fit.png"), load("fit_noise.png"));
+    assert!((clean.psnr_srgb(&photo_img) - scored).abs() < 0.2, "{} vs {scored}", clean.psnr_srgb(&photo_img));
+    assert!(noisy.rmse(&clean) > 1e-3, "fit_noise.png carries the noise: rmse {}", noisy.rmse(&clean));
     // The fit is registered to the photo: on the contact sheet (160 px high, so the plain render's
     // 4 repeats of 2 yarns give a pitch of 20 px) it matches the photo better than itself moved by
     // one yarn, which swaps the yarn on top in every cell.

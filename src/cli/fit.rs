@@ -45,8 +45,8 @@ impl From<ModeArg> for FitMode {
 pub struct FitArgs {
     /// Photo or one-repeat crop (PNG, JPEG or EXR).
     pub image: PathBuf,
-    /// Output folder (fit.json, fit.png, compare.png, trace.png, log.jsonl, prep.json, noise.json,
-    /// export/). Written beside it first and swapped in when the fit completes, so it only ever
+    /// Output folder (fit.json, fit.png, fit_noise.png, compare.png, trace.png, log.jsonl, prep.json,
+    /// noise.json, export/). Written beside it first and swapped in when the fit completes, so it only ever
     /// holds a complete fit; a fit stopped early (Ctrl-C) goes to `OUT.partial` instead.
     #[arg(long, default_value = "out/fit")]
     pub out: PathBuf,
@@ -100,7 +100,7 @@ pub struct FitArgs {
     /// Fast settings (10 px per cell, 100 iterations).
     #[arg(long)]
     pub fast: bool,
-    /// Do not add the estimated photo noise (noise.json) to fit.png.
+    /// Do not write fit_noise.png (fit.png with the estimated photo noise of noise.json added).
     #[arg(long)]
     pub no_noise: bool,
     /// Spatially varying body colour (paper §7.2): fit a colour multiplier per yarn cell (finer texels
@@ -254,8 +254,8 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
                 serde_json::to_string_pretty(&record)?.as_bytes(),
             )?;
         }
-        // fit.png's registered render, before its noise: the photo's size (the output framing).
-        let scores = written.registered.as_ref().map(|r| photo_scores(r, &input));
+        // fit.png, the registered render (no photo noise): the photo's size (the output framing).
+        let scores = written.registered.as_ref().map(|r| photo_scores(&r.blurred, &input));
         Ok((res, stopped, scores))
     })?;
     let dest = if stopped { sibling(&args.out, "partial")? } else { args.out.clone() };

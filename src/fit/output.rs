@@ -1,6 +1,6 @@
 //! The fit's output stage: the final state (clamped to Table 1, rendered at `final_spp`, the
 //! pattern reduced, a scene that frames the input) and the files of a fit: `fit.json`,
-//! `prep.json`, `noise.json`, `fit.png`, `compare.png`, `trace.png`, `log.jsonl`, `export/`.
+//! `prep.json`, `noise.json`, `fit.png`, `fit_noise.png`, `compare.png`, `trace.png`, `log.jsonl`, `export/`.
 
 use super::evaluator::Evaluator;
 use super::options::RenderSettings;
@@ -129,40 +129,82 @@ pub fn registered_render_sharp(res: &FitResult, size: (u32, u32), threads: Optio
 
 /// [`registered_render`], the repeat blurred as the fit's renders were when `blurred`.
 fn register(res: &FitResult, size: (u32, u32), threads: Option<usize>, blurred: bool) -> Option<Image> {
-    let p = res.prep.as_ref()?;
-    let inv = crate::math::linalg::mat3_inv(&p.homography)?;
-    let (n_e, n_a) = (res.cloth.pattern.n_e(), res.cloth.pattern.n_a());
-    let (cw, ch) = (p.crop.w.max(1) as f64, p.crop.h.max(1) as f64);
-    let photo_c = (cw / n_a as f64).max(ch / n_e as f64) as f32;
-    let c = photo_c.clamp(REGISTER_PX_PER_CELL.0, REGISTER_PX_PER_CELL.1).round() as u32;
-    let scene = Scene {
-        width: n_a as u32 * c,
-        height: n_e as u32 * c,
-        spp: REGISTER_SPP,
-        seed: res.fit_scene.seed.wrapping_add(11),
-        ..res.fit_scene.clone()
-    };
-    let tile = render(&res.cloth, &scene, &RenderOptions { threads, ..Default::default() });
-    // The fit compared its renders with the target after a Gaussian blur of `blur_px` fit pixels
-    // (the blur preparation gave the target, plus the photo's own); the repeat gets the same blur,
-    // σ scaled from the fit's pixels per cell to this repeat's, so that fit.png shows what was
-    // fitted rather than a sharper cloth the fit never compared.
-    let fit_c = res.render.width as f32 / n_a.max(1) as f32;
-    let sigma = if blurred { res.blur_px * c as f32 / fit_c.max(1e-3) } else { 0.0 };
-    let tile = super::evaluator::blur_wrapped(&tile, sigma);
-    let (tw, th) = (tile.width as f64, tile.height as f64);
-    let (w, h) = size;
-    let mut data = Vec::with_capacity((w * h) as usize);
-    for y in 0..h {
-        for x in 0..w {
-            let (u, v) = crate::math::linalg::apply(&inv, x as f64, y as f64);
-            // Pixel centres: rectified pixel u covers [u, u + 1) in edge coordinates.
-            let a = (u + 0.5 - p.crop.x as f64) / cw * tw - 0.5;
-            let b = (v + 0.5 - p.crop.y as f64) / ch * th - 0.5;
-            data.push(sample_wrapped(&tile, a, b));
-        }
+    let tile = RegisteredTile::render(res, threads)?;
+    Some(tile.sample(res, size, blurred))
+}
+
+/// The fit registered to the photo twice from one render of its repeat: as compared
+/// ([`registered_render`]) and sharp ([`registered_render_sharp`]).
+pub fn registered_pair(res: &FitResult, size: (u32, u32), threads: Option<usize>) -> Option<Registered> {
+    let tile = RegisteredTile::render(res, threads)?;
+    Some(Registered { blurred: tile.sample(res, size, true), sharp: tile.sample(res, size, false) })
+}
+
+/// The fit registered to the photo ([`registered_pair`]).
+#[derive(Clone, Debug)]
+pub struct Registered {
+    /// [`registered_render`]: the repeat blurred as the fit compared it (`fit.png`).
+    pub blurred: Image,
+    /// [`registered_render_sharp`]: the repeat as a sharp camera sees it.
+    pub sharp: Image,
+}
+
+/// One repeat of the fit grid rendered at about the photo's pixels per cell: every pixel of
+/// [`registered_render`] is a sample of it (the view is orthographic and the cloth periodic).
+struct RegisteredTile {
+    tile: Image,
+    /// Pixels per cell of `tile`.
+    c: u32,
+    /// `H⁻¹`: photo pixels to rectified pixels.
+    inv: crate::math::linalg::Homography,
+}
+
+impl RegisteredTile {
+    fn render(res: &FitResult, threads: Option<usize>) -> Option<Self> {
+        let p = res.prep.as_ref()?;
+        let inv = crate::math::linalg::mat3_inv(&p.homography)?;
+        let (n_e, n_a) = (res.cloth.pattern.n_e(), res.cloth.pattern.n_a());
+        let (cw, ch) = (p.crop.w.max(1) as f64, p.crop.h.max(1) as f64);
+        let photo_c = (cw / n_a as f64).max(ch / n_e as f64) as f32;
+        let c = photo_c.clamp(REGISTER_PX_PER_CELL.0, REGISTER_PX_PER_CELL.1).round() as u32;
+        let scene = Scene {
+            width: n_a as u32 * c,
+            height: n_e as u32 * c,
+            spp: REGISTER_SPP,
+            seed: res.fit_scene.seed.wrapping_add(11),
+            ..res.fit_scene.clone()
+        };
+        let tile = render(&res.cloth, &scene, &RenderOptions { threads, ..Default::default() });
+        Some(Self { tile, c, inv })
     }
-    Some(Image::new(w, h, data))
+
+    /// The photo-sized image: input pixel `(x, y)` maps to rectified pixel `(u, v) = H⁻¹(x, y)`,
+    /// wrapped into the repeat; with `blurred`, the repeat first gets the fit's blur.
+    fn sample(&self, res: &FitResult, size: (u32, u32), blurred: bool) -> Image {
+        let p = res.prep.as_ref().expect("a registered tile exists only with preparation");
+        let (cw, ch) = (p.crop.w.max(1) as f64, p.crop.h.max(1) as f64);
+        // The fit compared its renders with the target after a Gaussian blur of `blur_px` fit
+        // pixels (the blur preparation gave the target, plus the photo's own); the repeat gets the
+        // same blur, σ scaled from the fit's pixels per cell to this repeat's, so that fit.png shows
+        // what was fitted rather than a sharper cloth the fit never compared.
+        let n_a = res.cloth.pattern.n_a();
+        let fit_c = res.render.width as f32 / n_a.max(1) as f32;
+        let sigma = if blurred { res.blur_px * self.c as f32 / fit_c.max(1e-3) } else { 0.0 };
+        let tile = super::evaluator::blur_wrapped(&self.tile, sigma);
+        let (tw, th) = (tile.width as f64, tile.height as f64);
+        let (w, h) = size;
+        let mut data = Vec::with_capacity((w * h) as usize);
+        for y in 0..h {
+            for x in 0..w {
+                let (u, v) = crate::math::linalg::apply(&self.inv, x as f64, y as f64);
+                // Pixel centres: rectified pixel u covers [u, u + 1) in edge coordinates.
+                let a = (u + 0.5 - p.crop.x as f64) / cw * tw - 0.5;
+                let b = (v + 0.5 - p.crop.y as f64) / ch * th - 0.5;
+                data.push(sample_wrapped(&tile, a, b));
+            }
+        }
+        Image::new(w, h, data)
+    }
 }
 
 /// Bilinear sample of `img` at pixel position `(x, y)` (pixel centres at integers), the image
@@ -417,9 +459,9 @@ fn fraction(k: usize, x: f64) -> f64 {
 }
 
 /// Every output of a fit in `dir`: with preparation, noise post-estimation (paper §6.3) — the
-/// residual rectified − regularized gives `noise.json`, whose synthesized noise is added to
-/// `fit.png` unless `add_noise` is false — then the files of [`write_outputs`] and the yarn
-/// geometry in `export/` (PLY + Mitsuba 3 scene). Returns warnings (no noise model) and the
+/// residual rectified − regularized gives `noise.json`, whose synthesized noise is added to a
+/// copy of `fit.png`, `fit_noise.png`, unless `add_noise` is false — then the files of
+/// [`write_outputs`] and the yarn geometry in `export/` (PLY + Mitsuba 3 scene). Returns warnings (no noise model) and the
 /// registered render (see [`Written`]).
 pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: Option<usize>) -> Result<Written> {
     let mut warnings = Vec::new();
@@ -446,21 +488,22 @@ pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: 
 pub struct Written {
     /// Warnings (no noise model).
     pub warnings: Vec<String>,
-    /// With preparation, [`registered_render`] at the photo's size, before the photo noise that
-    /// `fit.png` adds: what the fit is scored with against the whole photo ([`photo_scores`]),
-    /// rendered once for both.
-    pub registered: Option<Image>,
+    /// With preparation, the fit registered at the photo's size: `blurred` is `fit.png` (without
+    /// the photo noise of `fit_noise.png`), what the fit is scored with against the whole photo
+    /// ([`photo_scores`]); `sharp` is what a sharp input's colours are compared with.
+    pub registered: Option<Registered>,
 }
 
 /// Write the files of a fit into `dir` (created): `fit.json`, `prep.json` (with preparation),
-/// `log.jsonl`, `fit.png` (with `noise` added when given), `compare.png`, `trace.png`. Returns the
-/// registered render before the noise (`None` without preparation).
+/// `log.jsonl`, `fit.png`, `fit_noise.png` (`fit.png` with `noise` added, when given), `compare.png`,
+/// `trace.png`. Returns the registered renders, the blurred one being `fit.png` (`None` without
+/// preparation).
 pub fn write_outputs(
     res: &FitResult,
     dir: &Path,
     threads: Option<usize>,
     noise: Option<&crate::noise::NoiseModel>,
-) -> Result<Option<Image>> {
+) -> Result<Option<Registered>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     res.params.save(&dir.join("fit.json")).with_context(|| format!("writing {}", dir.join("fit.json").display()))?;
     if let Some(p) = &res.prep {
@@ -475,15 +518,21 @@ pub fn write_outputs(
     // With preparation, fit.png is registered to the photo (its size, rotation, perspective and
     // phase); without, the input is one repeat and `params.scene` frames it.
     let size = (res.params.scene.width, res.params.scene.height);
-    let registered = registered_render(res, size, threads);
-    let mut full = match &registered {
-        Some(img) => img.clone(),
+    let registered = registered_pair(res, size, threads);
+    let full = match &registered {
+        Some(r) => r.blurred.clone(),
         None => render(&res.params.cloth, &res.params.scene, &RenderOptions { threads, ..Default::default() }),
     };
-    if let Some(m) = noise {
-        m.add_to(&mut full, res.params.scene.seed);
-    }
     full.save_png(&dir.join("fit.png"))?;
+    // The synthesized photo noise goes to its own file: on a real photo the residual it models
+    // holds everything the periodic fit leaves out (hair, uneven yarns, misregistration), often a
+    // standard deviation of 0.2–0.3, which buries the cloth; fit.png stays the image whose PSNR
+    // and SSIM against the photo are reported, so the two can be flipped.
+    if let Some(m) = noise {
+        let mut noisy = full;
+        m.add_to(&mut noisy, res.params.scene.seed);
+        noisy.save_png(&dir.join("fit_noise.png"))?;
+    }
     write_compare(res, &dir.join("compare.png"))?;
     write_trace(res, &dir.join("trace.png"))?;
     Ok(registered)

@@ -290,12 +290,12 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
             case.pattern = res.params.cloth.pattern.to_string();
             case.crop_psnr_db = Some(res.psnr_db);
             let threads = fopts.control.threads;
-            // Saved, fit.png's registered render (before its noise) is the one scored.
+            // Saved, fit.png's registered render is the one scored.
             let mut registered = None;
             if let Some(s) = &opts.save {
                 let d = save_dir(s, &label.path);
                 let written = write_fit_outputs(&res, &d, true, threads).and_then(|w| {
-                    registered = w.registered;
+                    registered = w.registered.map(|r| r.blurred);
                     let json = serde_json::to_string_pretty(&case.capture)?;
                     crate::io::write_atomic(&d.join("capture.json"), json.as_bytes())?;
                     Ok(())

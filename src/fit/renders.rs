@@ -240,12 +240,16 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
             case.exact = res.params.cloth.pattern.equivalent(&truth);
             case.crop_psnr_db = res.psnr_db;
             case.row = Some(sheet_row(&res.target, &res.observed_render(), SHEET_ROW_H));
+            // Saved, the outputs' registration (one render of the repeat) serves the colours too.
+            let mut sharp = None;
             if let Some(s) = save {
-                write_fit_outputs(&res, &s.join(name), true, opts.control.threads)?;
+                let written = write_fit_outputs(&res, &s.join(name), true, opts.control.threads)?;
+                sharp = written.registered.map(|r| r.sharp);
             }
             if let Some(l) = &labels {
                 let size = (input.width, input.height);
-                case.colours = registered_render_sharp(&res, size, opts.control.threads)
+                case.colours = sharp
+                    .or_else(|| registered_render_sharp(&res, size, opts.control.threads))
                     .and_then(|fit| family_colours(&input, l, &fit));
                 case.colour_err = case.colours.map(|c| c.error());
             }
