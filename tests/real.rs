@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 use woven::fit::capture::{estimate_capture, Capture};
-use woven::fit::real::{eval_real, RealOptions};
+use woven::fit::real::{eval_real, periodic_ceiling, RealOptions};
 use woven::fit::FitOptions;
 use woven::pattern::WeaveClass;
 use woven::prep::{prepare, PrepOptions};
@@ -94,6 +94,8 @@ fn eval_real_on_a_folder_of_renders() {
         let photo = k.photo.expect("scored against the whole photo");
         assert!(photo.psnr_db > 12.0 && photo.ssim.is_finite(), "{}: {photo:?}", k.path);
         assert!(k.crop_psnr_db.unwrap() > 15.0, "{}: {:?}", k.path, k.crop_psnr_db);
+        let ceiling = k.ceiling_db.expect("the periodic ceiling of a prepared photo");
+        assert!(ceiling.is_finite() && ceiling > 12.0, "{}: ceiling {ceiling}", k.path);
         assert!(k.secs > 0.0);
     }
     // The blank photo fails in preparation, with what to try; the missing one names its file.
@@ -128,6 +130,27 @@ fn eval_real_on_a_folder_of_renders() {
     assert!(save.join("plain/capture.json").is_file() && save.join("blank/prep_grid.png").is_file());
     let sheet = rep.sheet().unwrap();
     assert!(sheet.height >= 3 * 160, "three rows (two fits, one overlay): {}", sheet.height);
+}
+
+#[test]
+fn the_periodic_ceiling_is_high_on_a_periodic_render_and_falls_with_what_no_tile_holds() {
+    // A rotated twill render is periodic: its own prepared picture, registered back, matches it
+    // up to the preparation's blur and the render noise. A stain that no other repeat has
+    // (what hair or a wandering yarn is to a real photo) lowers the ceiling.
+    let img = rendered("twill22", "front", 3.0, 192, 4.0, 16);
+    let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
+    let clean = periodic_ceiling(&p, &img);
+    let mut stained = img.clone();
+    for y in 80..104 {
+        for x in 90..114 {
+            stained.data[(y * 192 + x) as usize] = [0.9, 0.9, 0.9];
+        }
+    }
+    let ps = prepare(&stained.to_rgb32f(), &PrepOptions::default()).unwrap();
+    let with_stain = periodic_ceiling(&ps, &stained);
+    eprintln!("ceiling: clean {clean:.2} dB, stained {with_stain:.2} dB");
+    assert!(clean > 20.0, "clean periodic render: {clean:.2} dB");
+    assert!(with_stain < clean - 2.0, "stain: {with_stain:.2} dB vs clean {clean:.2} dB");
 }
 
 #[test]

@@ -785,13 +785,14 @@ fn run_eval_real(dir: &Path, args: &EvalArgs) -> Result<()> {
     let rep = eval_real(dir, &opts, &mut |c| match &c.error {
         Some(e) => eprintln!("{}: label {} failed ({:.1} s): {e}", c.path, c.label, c.secs),
         None => println!(
-            "{}: label {} class {} pattern {} capture {} photo_psnr={} ssim={} crop_psnr={} {:.1} s",
+            "{}: label {} class {} pattern {} capture {} photo_psnr={} (ceiling {}) ssim={} crop_psnr={} {:.1} s",
             c.path,
             c.label,
             c.class.map_or("-".into(), |k| k.to_string()),
             c.pattern,
             c.capture.map_or("-", |k| k.capture.name()),
             c.photo.map_or("-".into(), |p| format!("{:.1} dB", p.psnr_db)),
+            c.ceiling_db.map_or("-".into(), |p| format!("{p:.1} dB")),
             c.photo.map_or("-".into(), |p| format!("{:.3}", p.ssim)),
             c.crop_psnr_db.map_or("-".into(), |p| format!("{p:.1} dB")),
             c.secs
