@@ -288,27 +288,38 @@ enum EdgePick {
 }
 
 /// The coarse angle kept: the Radon best `k`, unless another local maximum of `total` within
-/// 70 % of it, or any coarse angle within [`NEAR_AXIS_DEG`] of 0°, has an [`edge_lattice_score`]
+/// 70 % of it, or 0°, or — when `k` lies outside the window or has already lost to one of those —
+/// any whole degree within [`NEAR_AXIS_DEG`] of 0°, has an [`edge_lattice_score`]
 /// at least 1.5× as high and above [`grid::MIN_EDGE_CONFIDENCE`] (see `dominant_angle`).
 fn rescore_by_edges(g: &Gray, angles: &[f64], total: &[f64], k: usize) -> EdgePick {
     let tmax = total[k];
+    // First the session-6 candidates: the Radon peaks within 70 % of the best, and 0°.
     let peaks: Vec<usize> = (1..total.len().saturating_sub(1))
         .filter(|&i| {
             i != k
                 && ((total[i] >= total[i - 1] && total[i] >= total[i + 1] && total[i] >= 0.7 * tmax)
-                    || (angles[i].abs() <= NEAR_AXIS_DEG + 1e-9 && (angles[i] - angles[i].round()).abs() < 1e-9))
+                    || angles[i].abs() < 1e-9)
         })
         .collect();
-    if peaks.is_empty() {
-        return EdgePick::Radon(k);
-    }
     let base = edge_lattice_score(g, angles[k]);
-    let scored: Vec<(usize, f64)> = peaks.par_iter().map(|&i| (i, edge_lattice_score(g, angles[i]))).collect();
-    let (best, score) = scored.into_iter().max_by(|a, b| a.1.total_cmp(&b.1)).expect("non-empty");
-    if score >= 1.5 * base && score >= grid::MIN_EDGE_CONFIDENCE {
-        EdgePick::Edges(best)
-    } else {
-        EdgePick::Radon(k)
+    let mut scored: Vec<(usize, f64)> = peaks.par_iter().map(|&i| (i, edge_lattice_score(g, angles[i]))).collect();
+    let beats = |score: f64| score >= 1.5 * base && score >= grid::MIN_EDGE_CONFIDENCE;
+    // The window's whole degrees are scored only when the Radon best is in doubt: it lies outside
+    // the window, or another candidate's boundaries are already clearly straighter. On an aligned
+    // close-up whose Radon peak is the yarns neither holds, and the window's rotations of the
+    // whole image (one per edge score) are saved.
+    if angles[k].abs() > NEAR_AXIS_DEG || scored.iter().any(|&(_, sc)| beats(sc)) {
+        let window: Vec<usize> = (0..angles.len())
+            .filter(|&i| {
+                let a = angles[i];
+                i != k && a.abs() <= NEAR_AXIS_DEG + 1e-9 && (a - a.round()).abs() < 1e-9 && !peaks.contains(&i)
+            })
+            .collect();
+        scored.extend(window.par_iter().map(|&i| (i, edge_lattice_score(g, angles[i]))).collect::<Vec<_>>());
+    }
+    match scored.into_iter().max_by(|a, b| a.1.total_cmp(&b.1)) {
+        Some((best, score)) if beats(score) => EdgePick::Edges(best),
+        _ => EdgePick::Radon(k),
     }
 }
 
