@@ -196,6 +196,22 @@ fn a_twill_render_is_not_rotated_to_its_lattice_diagonal() {
     assert_eq!((p.n_e, p.n_a), (4, 4));
 }
 
+/// FabricNET W117 and W125 (hairy twills whose yarns lie at about +1° and −2°) were prepared
+/// rotated to their twill diagonal (−11.2°, −15.1°) as 2×4 and 4×2 grids, and the fit read them as
+/// plain weaves: their Radon energy peaks only on the diagonal. Every angle within
+/// `rectify::NEAR_AXIS_DEG` of 0° is now rescored by its yarn boundaries: both come out near the
+/// axes as 4×4 grids (a twill's repeat).
+#[test]
+fn hairy_twill_photos_are_not_rotated_to_their_diagonal() {
+    for (name, angle) in [("W117", 1.0f32), ("W125", -2.0)] {
+        let Some(path) = shared_file(&format!("data/real/fabricnet/{name}.jpg")) else { return };
+        let img = Image::load(&path, 32).unwrap();
+        let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
+        assert!((p.angle_deg - angle).abs() < 1.0, "{name}: angle {}", p.angle_deg);
+        assert_eq!((p.n_e, p.n_a), (4, 4), "{name}");
+    }
+}
+
 /// Renders `pattern` (text rows) under the default rig (ambient, front, back and two sides: what
 /// `woven eval`'s photo path uses) with `repeats` repeats across 256 px, rotated by `rot`.
 fn rendered_rig(pattern: &str, repeats: f32, rot: f32) -> Image {

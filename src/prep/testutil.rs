@@ -88,3 +88,59 @@ pub fn psnr(a: &Rgb32FImage, b: &Rgb32FImage) -> f64 {
         a.as_raw().iter().zip(b.as_raw()).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / a.as_raw().len() as f64;
     10.0 * (1.0 / mse).log10()
 }
+
+/// A weft-faced twill 1/3 (each weft floats over three warps and under one, the warp cell
+/// stepping by one per row) as hairy yarns photographed front-lit: no dark gaps between parallel
+/// yarns (neighbours touch; the yarn flanks fall only to `flank` of the crown), and every float
+/// darkens toward its ends where it dives under the crossing yarn. The float ends line up along
+/// the twill diagonal, so the strongest straight structure is diagonal while the yarn boundaries
+/// are soft: what FabricNET W117 and W125 look like. Texture coordinates in pitches.
+pub fn soft_twill13(tx: f64, ty: f64, flank: f64) -> [f32; 3] {
+    let (ci, cj) = (ty.floor() as i64, tx.floor() as i64);
+    let (fx, fy) = (tx - tx.floor(), ty - ty.floor());
+    let warp_cell = cj.rem_euclid(4) == ci.rem_euclid(4);
+    let crown = |across: f64| flank + (1.0 - flank) * (std::f64::consts::PI * across).cos().max(0.0);
+    let b = if warp_cell {
+        // One-cell warp float: shaded across x, and pressed down at both ends.
+        crown(fx - 0.5) * (0.55 + 0.45 * (std::f64::consts::PI * fy).sin())
+    } else {
+        // Position along the three-cell float (0 at its left end, 3 at its right end).
+        let start = (ci.rem_euclid(4) + 1) as f64;
+        let along = (tx - start).rem_euclid(4.0);
+        let end_shade = 0.45 + 0.55 * (std::f64::consts::PI * along / 3.0).sin().max(0.0).sqrt();
+        crown(fy - 0.5) * end_shade
+    };
+    let b = b as f32;
+    [0.8 * b, 0.82 * b, 0.78 * b]
+}
+
+/// Renders `tex(tx, ty)` (texture coordinates in pitches) over a `w × h` image rotated so that the
+/// weft runs along `(cos a, sin a)`, `pitch = [warp, weft]` px per yarn (along x, y of the cloth),
+/// 3×3 super-sampled.
+pub fn render_texture_rotated(
+    pitch: [f64; 2],
+    w: u32,
+    h: u32,
+    a_deg: f64,
+    tex: impl Fn(f64, f64) -> [f32; 3],
+) -> Rgb32FImage {
+    let (s, c) = a_deg.to_radians().sin_cos();
+    let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
+    let mut img = Rgb32FImage::new(w, h);
+    let offs = [-1.0 / 3.0, 0.0, 1.0 / 3.0];
+    for (x, y, px) in img.enumerate_pixels_mut() {
+        let mut acc = [0.0f32; 3];
+        for oy in offs {
+            for ox in offs {
+                let (dx, dy) = (x as f64 + ox - cx, y as f64 + oy - cy);
+                let (tx, ty) = (c * dx + s * dy + 1000.0 * pitch[0], -s * dx + c * dy + 1000.0 * pitch[1]);
+                let v = tex(tx / pitch[0], ty / pitch[1]);
+                for k in 0..3 {
+                    acc[k] += v[k] / 9.0;
+                }
+            }
+        }
+        px.0 = acc;
+    }
+    img
+}
