@@ -45,8 +45,8 @@ impl From<ModeArg> for FitMode {
 pub struct FitArgs {
     /// Photo or one-repeat crop (PNG, JPEG or EXR).
     pub image: PathBuf,
-    /// Output folder (fit.json, fit.png, compare.png, trace.png, log.jsonl, prep.json, noise.json,
-    /// export/). Written beside it first and swapped in when the fit completes, so it only ever
+    /// Output folder (fit.json, fit.png, compare.png, trace.png, log.jsonl, stages.json, prep.json,
+    /// noise.json, export/). Written beside it first and swapped in when the fit completes, so it only ever
     /// holds a complete fit; a fit stopped early (Ctrl-C) goes to `OUT.partial` instead.
     #[arg(long, default_value = "out/fit")]
     pub out: PathBuf,
@@ -522,6 +522,7 @@ fn print_fit(image: &Path, out: &Path, res: &FitResult) {
         res.timings[2],
         out.display()
     );
+    println!("  stages: {}", woven::fit::stages_line(&res.stages));
 }
 
 /// Recovered against true parameters, each error in % of its range.
