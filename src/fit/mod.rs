@@ -156,6 +156,7 @@ pub fn fit_prepared(input: &Image, prepared: Option<crate::prep::Prepared>, opts
 /// The stages of [`fit`] in order.
 fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOptions) -> Result<FitResult> {
     let clock = Instant::now();
+    let mut stages = stages::StageClock::new(clock);
     let r = &opts.render;
     let mut target = input::prepare_target(input, prepared, &opts.input, r.px_per_cell)?;
     let (n_e, n_a) = target.grid;
@@ -183,7 +184,6 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         .with_backdrop(target.prep.is_some());
     let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
-    let mut stages = stages::StageClock::new(clock);
     stages.mark("prep", &ev0, None);
 
     let mut warnings = std::mem::take(&mut target.warnings);

@@ -149,6 +149,9 @@ pub struct JointOptions {
     pub decay: f64,
     /// Energy per unit MSE; calibrated when `None`.
     pub energy_scale: Option<f64>,
+    /// End a run once its best loss has stopped falling (`joint::plateau_window` iterations
+    /// without a 0.1 % fall); off: every run takes its whole share of `iterations`.
+    pub plateau_stop: bool,
 }
 
 impl Default for JointOptions {
@@ -161,6 +164,7 @@ impl Default for JointOptions {
             t0: anneal::T0,
             decay: anneal::DECAY,
             energy_scale: None,
+            plateau_stop: true,
         }
     }
 }
