@@ -279,7 +279,7 @@ fn ctrl_c_never_replaces_a_complete_fit() {
     let err = succeeds(&[&["fit", s(&exr), "--out", s(&out)][..], &quick("6")].concat());
     assert!(err.contains("fitting ") && err.contains("fit: 6/6") && err.contains("writing the outputs"), "{err}");
     assert!(!out.join("stale.txt").exists(), "OUT is replaced whole");
-    for f in ["fit.json", "fit.png", "compare.png", "trace.png", "log.jsonl", "export"] {
+    for f in ["fit.json", "fit.png", "compare.png", "trace.png", "log.jsonl", "stages.json", "export"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
     let log = std::fs::read(out.join("log.jsonl")).unwrap();

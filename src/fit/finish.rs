@@ -9,6 +9,7 @@ use super::evaluator::{state_loss, Evaluator};
 use super::joint::JointRuns;
 use super::options::FinishOptions;
 use super::preestimate::PreEstimate;
+use super::stages::StageClock;
 use super::{refine, Stage};
 use crate::params::{ClothParams, NF_RANGE, NP_RANGE};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -34,6 +35,7 @@ pub(crate) fn finish_runs(
     best: &ClothParams,
     joint: &JointRuns,
     pre: &PreEstimate,
+    clock: &mut StageClock,
 ) -> ClothParams {
     if !(opts.enabled && !joint.stopped && joint.per_run > 0) {
         return best.clone();
@@ -46,15 +48,22 @@ pub(crate) fn finish_runs(
         .chain(pre.starts.iter().cloned())
         .chain(pre.warmed.iter().cloned())
         .collect();
-    finish(st, opts.lm_iters, best, &others).1
+    finish(st, opts.lm_iters, best, &others, clock).1
 }
 
 /// Finish of `best` against `others` (the other runs' best states, the runs' starts and the
 /// warmed-up candidates): a state found early was scored with a less converged appearance than
 /// one found late, so every rival gets the same appearance descent (`lm_iters` iterations) as the
 /// best and the lowest loss wins; then up to [`TOGGLE_ROUNDS`] single-cell contests
-/// ([`toggle_contest`]). Returns the loss and the cloth.
-fn finish(st: &Stage, lm_iters: usize, best: &ClothParams, others: &[ClothParams]) -> (f32, ClothParams) {
+/// ([`toggle_contest`]). Returns the loss and the cloth; `clock` closes the stages `rivals` and
+/// `toggles`.
+fn finish(
+    st: &Stage,
+    lm_iters: usize,
+    best: &ClothParams,
+    others: &[ClothParams],
+    clock: &mut StageClock,
+) -> (f32, ClothParams) {
     let (ev, stop) = (st.ev, &*st.control.stop);
     let quick = ev.resampled(QUICK_SPP, st.render.seed);
     let finals = rivals(st, &quick, best, others);
@@ -66,6 +75,7 @@ fn finish(st: &Stage, lm_iters: usize, best: &ClothParams, others: &[ClothParams
         }
     }
     let (mut loss, mut best_cloth) = chosen.unwrap_or_else(|| (f32::INFINITY, best.clone()));
+    clock.mark("rivals", ev, Some(&best_cloth));
     if st.cells {
         for _ in 0..TOGGLE_ROUNDS {
             match toggle_contest(ev, &quick, &best_cloth, loss, lm_iters, stop) {
@@ -73,6 +83,7 @@ fn finish(st: &Stage, lm_iters: usize, best: &ClothParams, others: &[ClothParams
                 None => break,
             }
         }
+        clock.mark("toggles", ev, Some(&best_cloth));
     }
     (loss, best_cloth)
 }
@@ -189,7 +200,9 @@ mod tests {
         let st = Stage { ev: &ev, render: &render, control: &control, cells: true, clock: Instant::now() };
         let wrong = toggled_cell(&truth, 1, 2).expect("a weave");
         let start = refine::polish(&ev, &mut wrong.clone(), 0, 4, &control.stop);
-        let (loss, won) = finish(&st, 4, &wrong, &[]);
+        let mut clock = StageClock::new(Instant::now());
+        let (loss, won) = finish(&st, 4, &wrong, &[], &mut clock);
+        assert_eq!(clock.stages.iter().map(|s| s.stage).collect::<Vec<_>>(), ["rivals", "toggles"]);
         assert!(loss <= start, "{loss} > {start}");
         assert_eq!(won.pattern, truth.pattern, "the wrong cell stayed: {}", won.pattern);
         // Rivals: the start itself first, then distinct discrete states only.

@@ -54,6 +54,7 @@ mod refine;
 pub mod renders;
 pub mod report;
 mod shape_extra;
+mod stages;
 pub mod target;
 mod texture;
 
@@ -66,6 +67,7 @@ pub use options::{
 pub use output::{write_fit_outputs, Written};
 pub use preestimate::grey_appearance;
 pub use proposal::Proposal;
+pub use stages::{stages_line, StageTime};
 
 use crate::image_io::Image;
 use crate::params::{ClothParams, ParamFile};
@@ -109,6 +111,9 @@ pub struct FitResult {
     pub warnings: Vec<String>,
     /// Seconds: prep, pre-estimation, optimization, total.
     pub timings: [f64; 4],
+    /// Per stage: wall and CPU time, re-traces, and the loss of the best state it left
+    /// (`stages.json`).
+    pub stages: Vec<StageTime>,
     /// Number of re-traces (geometry records and renders).
     pub retraces: usize,
     /// Cyclic shift `(dx, dy)` in fit pixels that put the target's cell boundaries on the model's
@@ -151,6 +156,7 @@ pub fn fit_prepared(input: &Image, prepared: Option<crate::prep::Prepared>, opts
 /// The stages of [`fit`] in order.
 fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOptions) -> Result<FitResult> {
     let clock = Instant::now();
+    let mut stages = stages::StageClock::new(clock);
     let r = &opts.render;
     let mut target = input::prepare_target(input, prepared, &opts.input, r.px_per_cell)?;
     let (n_e, n_a) = target.grid;
@@ -178,10 +184,17 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         .with_backdrop(target.prep.is_some());
     let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
+    stages.mark("prep", &ev0, None);
 
     let mut warnings = std::mem::take(&mut target.warnings);
-    let pre =
-        preestimate::pre_estimate(&st0, &opts.pre, &target.crop, preestimate::default_cloth(pattern0), &mut warnings)?;
+    let pre = preestimate::pre_estimate(
+        &st0,
+        &opts.pre,
+        &target.crop,
+        preestimate::default_cloth(pattern0),
+        &mut warnings,
+        &mut stages,
+    )?;
     // With preparation, the pre-estimate settles the view: the last pixel of the phase and the
     // photo's own blur (`preestimate::fit_view`).
     let (ev, view) = if target.prep.is_some() && opts.pre.enabled {
@@ -198,26 +211,35 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     };
     let phase_shift = (phase_shift.0 + view.0 .0, phase_shift.1 + view.0 .1);
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
+    if target.prep.is_some() && opts.pre.enabled {
+        stages.mark("view", &ev, Some(&pre.initial));
+    }
     let t_pre = clock.elapsed().as_secs_f64() - t_prep;
 
     let joint = joint::run_all(&st, &opts.joint, &pre.starts);
     let best = joint.runs.first().cloned().unwrap_or_else(|| (f32::INFINITY, pre.initial.clone()));
-    let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre);
+    stages.mark("joint", &ev, Some(&best.1));
+    let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre, &mut stages);
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
     if !joint.stopped {
         finish::polish_winner(&st, &opts.finish, &mut cloth);
+        stages.mark("polish", &ev, Some(&cloth));
         // Optional yarn shape (crossing depth, flattening), kept only where it pays (shape_extra.rs).
         shape_extra::fit_shape(&ev, &mut cloth);
+        stages.mark("shape", &ev, Some(&cloth));
         // Optional flyaway fibres, their density kept only where it pays (hair_extra.rs).
         hair_extra::fit_hair(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop);
+        stages.mark("hair", &ev, Some(&cloth));
         if opts.finish.svcolor > 0 {
             cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
+            stages.mark("texture", &ev, Some(&cloth));
         }
     }
     let t_opt = clock.elapsed().as_secs_f64() - t_prep - t_pre;
 
     let out = output::final_state(&cloth, &ev, r, (n_e, n_a), (input.width, input.height), target.prep.as_ref())?;
+    stages.mark("output", &ev, None);
     Ok(FitResult {
         params: out.params,
         cloth: out.cloth,
@@ -235,6 +257,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         prep: target.prep,
         warnings,
         timings: [t_prep, t_pre, t_opt, clock.elapsed().as_secs_f64()],
+        stages: stages.stages,
         retraces: ev.traces().count(),
         phase_shift,
         blur_px: view.1,

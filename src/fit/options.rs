@@ -149,6 +149,12 @@ pub struct JointOptions {
     pub decay: f64,
     /// Energy per unit MSE; calibrated when `None`.
     pub energy_scale: Option<f64>,
+    /// End a run once its best loss has stopped falling (`joint::plateau_window` iterations
+    /// without a 0.1 % fall); off (the default): every run takes its whole share of
+    /// `iterations`. Off because the annealer finds its better discrete states late, while it
+    /// cools: on, the fit is a quarter to a third faster and sometimes worse (docs/benchmarks.md,
+    /// "Session 9: fit time").
+    pub plateau_stop: bool,
 }
 
 impl Default for JointOptions {
@@ -161,6 +167,7 @@ impl Default for JointOptions {
             t0: anneal::T0,
             decay: anneal::DECAY,
             energy_scale: None,
+            plateau_stop: false,
         }
     }
 }
@@ -270,6 +277,7 @@ mod tests {
         assert!(d.input.prep && d.pre.enabled && d.finish.enabled && d.cells_free());
         assert_eq!((d.render.px_per_cell, d.render.spp, d.render.loss_block), (16, 4, 2));
         assert_eq!((d.joint.iterations, d.joint.t0, d.joint.decay), (100, anneal::T0, anneal::DECAY));
+        assert!(!d.joint.plateau_stop, "the plateau stop is opt-in");
         let f = FitOptions::fast();
         assert_eq!(f.render.px_per_cell, 10);
         assert_eq!(f.joint.iterations, d.joint.iterations);

@@ -495,9 +495,9 @@ pub struct Written {
 }
 
 /// Write the files of a fit into `dir` (created): `fit.json`, `prep.json` (with preparation),
-/// `log.jsonl`, `fit.png`, `fit_noise.png` (`fit.png` with `noise` added, when given), `compare.png`,
-/// `trace.png`. Returns the registered renders, the blurred one being `fit.png` (`None` without
-/// preparation).
+/// `log.jsonl`, `stages.json` (`FitResult::stages`), `fit.png`, `fit_noise.png` (`fit.png` with `noise`
+/// added, when given), `compare.png`, `trace.png`. Returns the registered renders, the blurred one being
+/// `fit.png` (`None` without preparation).
 pub fn write_outputs(
     res: &FitResult,
     dir: &Path,
@@ -515,6 +515,7 @@ pub fn write_outputs(
         log.push('\n');
     }
     crate::io::write_atomic(&dir.join("log.jsonl"), log.as_bytes())?;
+    crate::io::write_atomic(&dir.join("stages.json"), serde_json::to_string_pretty(&res.stages)?.as_bytes())?;
     // With preparation, fit.png is registered to the photo (its size, rotation, perspective and
     // phase); without, the input is one repeat and `params.scene` frames it.
     let size = (res.params.scene.width, res.params.scene.height);

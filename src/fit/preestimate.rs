@@ -10,6 +10,7 @@ use super::candidates::{best_variant, greedy_sweeps, inverted_twin, rank_candida
 use super::colours::{estimate_colours, pattern_loss};
 use super::evaluator::{state_loss, Evaluator};
 use super::options::PreOptions;
+use super::stages::StageClock;
 use super::target::{cell_means, fit_scene, resample, shift_periodic};
 use super::{refine, Stage};
 use crate::image_io::Image;
@@ -69,6 +70,7 @@ pub(crate) fn pre_estimate(
     crop: &Image,
     cloth: ClothParams,
     warnings: &mut Vec<String>,
+    clock: &mut StageClock,
 ) -> Result<PreEstimate> {
     if !opts.enabled {
         return Ok(PreEstimate { starts: vec![cloth.clone()], warmed: Vec::new(), initial: cloth });
@@ -97,6 +99,7 @@ pub(crate) fn pre_estimate(
             }
         }
     }
+    clock.mark("rank", st.ev, None);
     // Warm-up: every shortlisted pattern gets its shape scans, colour estimate and a polish at
     // the fit's resolution; the best goes on. Candidates are compared only once their appearance
     // fits: with the grey default, the loss is too flat in the pattern to rank them.
@@ -110,10 +113,12 @@ pub(crate) fn pre_estimate(
     warm.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut warmed: Vec<ClothParams> = warm.iter().map(|w| w.1.clone()).collect();
     let mut starts = choose_starts(warm, opts.starts, opts.start_margin);
+    clock.mark("warm-up", st.ev, starts.first());
     if st.cells {
         for s in starts.iter_mut() {
             greedy_sweeps(st.ev, s, opts.max_sweeps, stop, state_loss);
         }
+        clock.mark("sweeps", st.ev, starts.first());
     }
     if st.cells {
         if let Some(first) = starts.first_mut() {
@@ -121,6 +126,7 @@ pub(crate) fn pre_estimate(
             *first = won;
             warmed.push(lost);
         }
+        clock.mark("twin", st.ev, starts.first());
     }
     let initial = starts.first().cloned().unwrap_or(cloth);
     Ok(PreEstimate { starts, warmed, initial })
