@@ -42,6 +42,7 @@ fn main() -> Result<()> {
             eprintln!("trained on {} views in {:.0} s -> {}", o.images, o.seconds, o.model.display());
             Ok(())
         }
+        Some("cue") if args.len() == 3 => cue(Path::new(&args[2])),
         _ => bail!("{USAGE}"),
     }
 }
@@ -159,4 +160,56 @@ fn label_sheet(img: &image::Rgb32FImage, truth: &[Vec<bool>], logits: &[Vec<f32>
         }
     }
     Ok(out)
+}
+
+/// Accuracy of the hand-made cue alone: a grid cell is read "weft on top" when the mean |∂I/∂y|
+/// over its pixels exceeds the mean |∂I/∂x| (I: the mean of the three log-encoded planes).
+fn cue(data: &Path) -> Result<()> {
+    let (_, samples, _) = woven::pre::load_dataset(data, &NoProgress)?;
+    let text = std::fs::read_to_string(data.join("labels.jsonl"))?;
+    let labels: Vec<serde_json::Value> =
+        text.lines().map(serde_json::from_str).collect::<Result<_, _>>().context("parsing labels.jsonl")?;
+    let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    for (s, l) in samples.iter().zip(&labels) {
+        let (x, w, h) = woven::net::preprocess(&s.image, 8);
+        let n = w * h;
+        let lum = |xx: usize, yy: usize| (x[yy * w + xx] + x[n + yy * w + xx] + x[2 * n + yy * w + xx]) / 3.0;
+        let truth = s.cell_labels();
+        let (mut right, mut total) = (0usize, 0usize);
+        for (r, row) in truth.iter().enumerate() {
+            for (c, &t) in row.iter().enumerate() {
+                let (mut gx, mut gy) = (0.0f32, 0.0f32);
+                let mid = std::env::var("CUE_MID").ok().and_then(|v| v.parse::<usize>().ok()).unwrap_or(8);
+                let (lo, hi) = (4 - mid / 2, 4 + mid / 2);
+                for yy in r * 8..r * 8 + 8 {
+                    for xx in c * 8..c * 8 + 8 {
+                        let (in_y, in_x) = ((lo..hi).contains(&(yy - r * 8)), (lo..hi).contains(&(xx - c * 8)));
+                        if !in_y && !in_x {
+                            continue;
+                        }
+                        let (xl, xr) = (xx.saturating_sub(1), (xx + 1).min(w - 1));
+                        let (yu, yd) = (yy.saturating_sub(1), (yy + 1).min(h - 1));
+                        if in_y {
+                            gx += (lum(xr, yy) - lum(xl, yy)).abs();
+                        }
+                        if in_x {
+                            gy += (lum(xx, yd) - lum(xx, yu)).abs();
+                        }
+                    }
+                }
+                right += ((gy > gx) == t) as usize;
+                total += 1;
+            }
+        }
+        let acc = right as f64 / total as f64;
+        for key in ["all".to_string(), format!("rig {}", rig_name(l))] {
+            let g = groups.entry(key).or_default();
+            g.0 += acc;
+            g.1 += 1;
+        }
+    }
+    for (key, (sum, n)) in &groups {
+        eprintln!("cue alone, {key}: {n} views, grid cells right {:.1}%", 100.0 * sum / *n as f64);
+    }
+    Ok(())
 }

@@ -118,6 +118,9 @@ pub struct TrainRecipe {
     /// Add the intensity's absolute x and y derivatives as input planes.
     #[serde(default)]
     pub orientation_channels: Option<bool>,
+    /// Add two per-cell cues from those planes at cell resolution.
+    #[serde(default)]
+    pub cell_cues: Option<bool>,
     /// Optimiser, schedule, epochs, etc.
     pub train: TrainConfig,
 }
@@ -209,6 +212,9 @@ pub fn train_model(opts: &TrainOptions, progress: &dyn Progress) -> Result<Train
     }
     if let Some(o) = recipe.orientation_channels {
         spec.orientation_channels = o;
+    }
+    if let Some(c) = recipe.cell_cues {
+        spec.cell_cues = c;
     }
     progress.message(&format!(
         "training on {} views ({} dataset classes, {} outputs) in {}",

@@ -226,6 +226,11 @@ pub struct NetSpec {
     /// session 9.
     #[serde(default)]
     pub orientation_channels: bool,
+    /// Feed the layers at cell resolution two cues per cell computed from the orientation planes
+    /// (`model::cell_cues`; needs [`NetSpec::orientation_channels`]); false in models made before
+    /// session 9.
+    #[serde(default)]
+    pub cell_cues: bool,
     /// Negative slope of the LeakyReLUs (trunk and parameter head).
     pub leaky_slope: f64,
     /// Scalar outputs (mean and log-variance each), in the order of [`Sample::targets`].
@@ -251,6 +256,7 @@ impl NetSpec {
             hidden: 64,
             norm_group_size: 0,
             orientation_channels: false,
+            cell_cues: false,
             leaky_slope: 0.1,
             outputs,
             classes: Vec::new(),
@@ -283,6 +289,9 @@ impl NetSpec {
             .find(|&&c| self.norm_group_size > 0 && !c.is_multiple_of(self.norm_group_size))
         {
             return bad(format!("a layer of {c} channels cannot be split into groups of {}", self.norm_group_size));
+        }
+        if self.cell_cues && !self.orientation_channels {
+            return bad("cell_cues needs orientation_channels".into());
         }
         if self.px_per_cell != 1 << self.backbone.len() {
             return bad(format!(
@@ -412,9 +421,14 @@ mod tests {
         assert!(matches!(s.validate(), Err(NetError::Spec(_))), "16 channels are not groups of 3");
         // A spec saved before session 9 (no normalisation or orientation fields) still reads.
         let mut old = serde_json::to_value(spec(64)).unwrap();
-        old.as_object_mut().unwrap().retain(|k, _| k != "norm_group_size" && k != "orientation_channels");
+        old.as_object_mut()
+            .unwrap()
+            .retain(|k, _| !["norm_group_size", "orientation_channels", "cell_cues"].contains(&k.as_str()));
         let back: NetSpec = serde_json::from_value(old).unwrap();
-        assert_eq!((back.norm_group_size, back.orientation_channels), (0, false));
+        assert_eq!((back.norm_group_size, back.orientation_channels, back.cell_cues), (0, false, false));
+        let mut s = spec(64);
+        s.cell_cues = true;
+        assert!(matches!(s.validate(), Err(NetError::Spec(_))), "cues come from the orientation planes");
         let o = OutputSpec::integer("n_p", 1, 7);
         assert_eq!(o.denormalise(0.0), 1.0);
         assert_eq!(o.denormalise(1.0), 7.0);
