@@ -9,6 +9,11 @@
 //! cargo run --release --example net_diag -- train DATA CONFIG WORK EPOCHS [resume]
 //!     `woven train` (src/pre.rs `train_model`) into WORK only, logging each epoch's summary:
 //!     for comparing recipes side by side without touching the shipped model.
+//! cargo run --release --example net_diag -- cue DATA
+//!     share of grid cells a hand-made orientation cue reads right (mean |∂I/∂y| against mean
+//!     |∂I/∂x| over the cell; `CUE_MID=k` restricts each to the middle k rows / columns), per rig.
+//! cargo run --release --example net_diag -- cluster DATA MODEL
+//!     grid cells right before and after `woven::net::pool_by_colour`, per split.
 //! ```
 //!
 //! Whether a model under-fits (train and val accuracy both low) or over-fits, and which views
@@ -20,7 +25,8 @@ use std::path::Path;
 use woven::net::PreEstimator;
 use woven::progress::{NoProgress, Progress};
 
-const USAGE: &str = "usage: net_diag views DATA MODEL OUTDIR | net_diag train DATA CONFIG WORK EPOCHS [resume]";
+const USAGE: &str =
+    "usage: net_diag views DATA MODEL OUTDIR | train DATA CONFIG WORK EPOCHS [resume] | cue DATA | cluster DATA MODEL";
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -43,6 +49,7 @@ fn main() -> Result<()> {
             Ok(())
         }
         Some("cue") if args.len() == 3 => cue(Path::new(&args[2])),
+        Some("cluster") if args.len() == 4 => cluster(Path::new(&args[2]), Path::new(&args[3])),
         _ => bail!("{USAGE}"),
     }
 }
@@ -210,6 +217,53 @@ fn cue(data: &Path) -> Result<()> {
     }
     for (key, (sum, n)) in &groups {
         eprintln!("cue alone, {key}: {n} views, grid cells right {:.1}%", 100.0 * sum / *n as f64);
+    }
+    Ok(())
+}
+
+/// The model's grid logits against the same logits pooled within the two colour groups of the
+/// view's cells by `woven::net::pool_by_colour` (the 8 × 8 grid taken as one repeat of 8 × 8
+/// cells), per split, on all views and on the views whose colours separate.
+fn cluster(data: &Path, model: &Path) -> Result<()> {
+    let model = PreEstimator::load(model)?;
+    let (_, samples, _) = woven::pre::load_dataset(data, &NoProgress)?;
+    let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    for s in &samples {
+        let p = model.predict(&s.image)?;
+        let truth = s.cell_labels();
+        let g = truth.len();
+        // `pool_by_colour` indexes cells by weft: grid row r from the top is weft g − 1 − r.
+        let view = woven::net::ViewPrediction {
+            cell_logits: (0..g).map(|i| p.cell_logits[g - 1 - i].clone()).collect(),
+            outputs: Vec::new(),
+        };
+        let pooled = woven::net::pool_by_colour(&view, &woven::Image::from_rgb32f(&s.image), g, g);
+        let acc = |l: &[Vec<f32>]| {
+            let right = (0..g)
+                .flat_map(|i| (0..g).map(move |j| (i, j)))
+                .filter(|&(i, j)| (l[i][j] > 0.0) == truth[g - 1 - i][j]);
+            right.count() as f64 / (g * g) as f64
+        };
+        let split = if woven::net::train::is_validation(s.seed, 0.1) { "val" } else { "train" };
+        let own = acc(&view.cell_logits);
+        let after = pooled.as_ref().map_or(own, |v| acc(&v.cell_logits));
+        let mut rows = vec![
+            (format!("{split} network"), own),
+            (format!("{split} colour-pooled"), after),
+            (format!("{split} separated views"), pooled.is_some() as u8 as f64),
+        ];
+        if pooled.is_some() {
+            rows.push((format!("{split} separated: network"), own));
+            rows.push((format!("{split} separated: pooled"), after));
+        }
+        for (key, a) in rows {
+            let e = groups.entry(key).or_default();
+            e.0 += a;
+            e.1 += 1;
+        }
+    }
+    for (key, (sum, n)) in &groups {
+        eprintln!("{key}: {n} views, {:.1}%", 100.0 * sum / *n as f64);
     }
     Ok(())
 }

@@ -16,7 +16,9 @@
 //! * [`model`] holds the network and the seeded init; [`train()`] trains from in-memory
 //!   [`Sample`]s with AdamW and dihedral augmentation, checkpoints every epoch and resumes.
 //! * [`PreEstimator`] loads a trained model; [`read_view`] is the fit's entry point (its target
-//!   at any pixels per cell, `n_e × n_a` cells); [`bench_inference`] times it.
+//!   at any pixels per cell, `n_e × n_a` cells); [`pool_by_colour`] pools a reading's logits
+//!   within the two colour groups of the target's cells (the two yarn families), when they are
+//!   clearly apart; [`bench_inference`] times it.
 //! * [`TrainReport`] holds the metrics and writes a Markdown report and learning curves.
 //!
 //! Images enter as linear RGB; [`preprocess`] normalises them for exposure (divides by the mean)
@@ -28,7 +30,10 @@ pub mod model;
 pub mod report;
 pub mod train;
 
-pub use infer::{bench_inference, read_view, PreEstimator, PredictedOutput, Prediction, ViewPrediction};
+pub use infer::{
+    bench_inference, pool_by_colour, read_view, PreEstimator, PredictedOutput, Prediction, ViewPrediction,
+    COLOUR_SEPARATION,
+};
 pub use model::PreNet;
 pub use report::{ClassStats, EpochStats, OutputError, TrainReport};
 pub use train::{bench_train_step, train, LrSchedule, Sample, TrainConfig};
