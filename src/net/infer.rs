@@ -342,7 +342,8 @@ pub fn read_view(model: &PreEstimator, target: &Image, n_e: usize, n_a: usize) -
 /// Within-family pooling of a [`read_view`] reading by colour: `Some(pooled)` when the pattern
 /// cells of `target` (one repeat, laid out as for [`read_view`]) fall into two clearly separate
 /// colour groups, each cell's logit replaced by the mean logit of its group; `None` when they do
-/// not (the two families look alike, or a repeat of one cell).
+/// not (the two families look alike, a repeat of one cell, a reading of another shape, or a
+/// non-finite pixel inside a cell's centre).
 ///
 /// Why: a cell shows the yarn on top at its centre, and the two families' yarns usually differ in
 /// colour, so the cells whose centres share a colour share a label. The network reads each cell
@@ -381,7 +382,8 @@ pub fn pool_by_colour(view: &ViewPrediction, target: &Image, n_e: usize, n_a: us
             for x in xs.clone() {
                 let v = target.get(x as u32, y as u32);
                 for c in 0..3 {
-                    f[c] += (v[c].max(0.0) as f64 + 1e-3).ln();
+                    // NaN stays NaN (`f32::max` would turn it into 0) and is refused below.
+                    f[c] += if v[c].is_finite() { (v[c].max(0.0) as f64 + 1e-3).ln() } else { f64::NAN };
                 }
                 k += 1.0;
             }
@@ -389,6 +391,9 @@ pub fn pool_by_colour(view: &ViewPrediction, target: &Image, n_e: usize, n_a: us
         f.map(|t| t / k)
     };
     let feats: Vec<[f64; 3]> = (0..n).map(|c| colour(c / n_a, c % n_a)).collect();
+    if feats.iter().flatten().any(|v| !v.is_finite()) {
+        return None; // a NaN / Inf pixel: no colour to group by
+    }
     let d2 = |a: &[f64; 3], b: &[f64; 3]| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>();
     let (mut a, mut b, mut far) = (0, 0, 0.0);
     for i in 0..n {
@@ -549,8 +554,11 @@ mod tests {
         // One colour everywhere: nothing to pool by.
         let grey = Image::new(30, 20, vec![[0.3, 0.3, 0.3]; 600]);
         assert!(pool_by_colour(&view, &grey, 2, 3).is_none());
-        // A reading of another shape is refused, not indexed out of bounds.
+        // A reading of another shape is refused, not indexed out of bounds; so is a NaN pixel.
         assert!(pool_by_colour(&view, &target, 3, 2).is_none());
+        let mut nan = target.clone();
+        nan.data[5 * 30 + 5] = [f32::NAN, 0.0, 0.0];
+        assert!(pool_by_colour(&view, &nan, 2, 3).is_none());
     }
 
     #[test]
