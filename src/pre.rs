@@ -112,6 +112,15 @@ pub struct TrainRecipe {
     /// Width of the parameter head.
     #[serde(default)]
     pub hidden: Option<usize>,
+    /// Channels per group of the group normalisation after each 3×3 conv (0: none).
+    #[serde(default)]
+    pub norm_group_size: Option<usize>,
+    /// Add the intensity's absolute x and y derivatives as input planes.
+    #[serde(default)]
+    pub orientation_channels: Option<bool>,
+    /// Add two per-cell cues from those planes at cell resolution.
+    #[serde(default)]
+    pub cell_cues: Option<bool>,
     /// Optimiser, schedule, epochs, etc.
     pub train: TrainConfig,
 }
@@ -197,6 +206,15 @@ pub fn train_model(opts: &TrainOptions, progress: &dyn Progress) -> Result<Train
     }
     if let Some(h) = recipe.hidden {
         spec.hidden = h;
+    }
+    if let Some(g) = recipe.norm_group_size {
+        spec.norm_group_size = g;
+    }
+    if let Some(o) = recipe.orientation_channels {
+        spec.orientation_channels = o;
+    }
+    if let Some(c) = recipe.cell_cues {
+        spec.cell_cues = c;
     }
     progress.message(&format!(
         "training on {} views ({} dataset classes, {} outputs) in {}",

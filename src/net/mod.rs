@@ -16,7 +16,9 @@
 //! * [`model`] holds the network and the seeded init; [`train()`] trains from in-memory
 //!   [`Sample`]s with AdamW and dihedral augmentation, checkpoints every epoch and resumes.
 //! * [`PreEstimator`] loads a trained model; [`read_view`] is the fit's entry point (its target
-//!   at any pixels per cell, `n_e × n_a` cells); [`bench_inference`] times it.
+//!   at any pixels per cell, `n_e × n_a` cells); [`pool_by_colour`] pools a reading's logits
+//!   within the two colour groups of the target's cells (the two yarn families), when they are
+//!   clearly apart; [`bench_inference`] times it.
 //! * [`TrainReport`] holds the metrics and writes a Markdown report and learning curves.
 //!
 //! Images enter as linear RGB; [`preprocess`] normalises them for exposure (divides by the mean)
@@ -28,7 +30,10 @@ pub mod model;
 pub mod report;
 pub mod train;
 
-pub use infer::{bench_inference, read_view, PreEstimator, PredictedOutput, Prediction, ViewPrediction};
+pub use infer::{
+    bench_inference, pool_by_colour, read_view, PreEstimator, PredictedOutput, Prediction, ViewPrediction,
+    COLOUR_SEPARATION,
+};
 pub use model::PreNet;
 pub use report::{ClassStats, EpochStats, OutputError, TrainReport};
 pub use train::{bench_train_step, train, LrSchedule, Sample, TrainConfig};
@@ -216,6 +221,21 @@ pub struct NetSpec {
     pub convs_per_block: usize,
     /// Width of the hidden layer of the parameter head.
     pub hidden: usize,
+    /// Channels per group of the group normalisation after every 3×3 conv (Wu & He 2018); 0:
+    /// no normalisation (models made before session 9). Each layer's channel count must be a
+    /// multiple of it.
+    #[serde(default)]
+    pub norm_group_size: usize,
+    /// Feed the first layer two more planes, the absolute horizontal and vertical derivatives of
+    /// the view's intensity (`model::with_orientation_channels`); false in models made before
+    /// session 9.
+    #[serde(default)]
+    pub orientation_channels: bool,
+    /// Feed the layers at cell resolution two cues per cell computed from the orientation planes
+    /// (`model::cell_cues`; needs [`NetSpec::orientation_channels`]); false in models made before
+    /// session 9.
+    #[serde(default)]
+    pub cell_cues: bool,
     /// Negative slope of the LeakyReLUs (trunk and parameter head).
     pub leaky_slope: f64,
     /// Scalar outputs (mean and log-variance each), in the order of [`Sample::targets`].
@@ -239,6 +259,9 @@ impl NetSpec {
             cell_convs: vec![64],
             convs_per_block: 1,
             hidden: 64,
+            norm_group_size: 0,
+            orientation_channels: false,
+            cell_cues: false,
             leaky_slope: 0.1,
             outputs,
             classes: Vec::new(),
@@ -263,6 +286,17 @@ impl NetSpec {
         }
         if self.convs_per_block == 0 || self.hidden == 0 {
             return bad("convs_per_block and hidden must be positive".into());
+        }
+        if let Some(c) = self
+            .backbone
+            .iter()
+            .chain(&self.cell_convs)
+            .find(|&&c| self.norm_group_size > 0 && !c.is_multiple_of(self.norm_group_size))
+        {
+            return bad(format!("a layer of {c} channels cannot be split into groups of {}", self.norm_group_size));
+        }
+        if self.cell_cues && !self.orientation_channels {
+            return bad("cell_cues needs orientation_channels".into());
         }
         if self.px_per_cell != 1 << self.backbone.len() {
             return bad(format!(
@@ -385,6 +419,21 @@ mod tests {
         let mut s = spec(64);
         s.px_per_cell = 4;
         assert!(matches!(s.validate(), Err(NetError::Spec(_))), "3 pools give 8 px per cell");
+        let mut s = spec(64);
+        s.norm_group_size = 4;
+        assert!(s.validate().is_ok(), "16, 32, 64 channels split into groups of 4");
+        s.norm_group_size = 3;
+        assert!(matches!(s.validate(), Err(NetError::Spec(_))), "16 channels are not groups of 3");
+        // A spec saved before session 9 (no normalisation or orientation fields) still reads.
+        let mut old = serde_json::to_value(spec(64)).unwrap();
+        old.as_object_mut()
+            .unwrap()
+            .retain(|k, _| !["norm_group_size", "orientation_channels", "cell_cues"].contains(&k.as_str()));
+        let back: NetSpec = serde_json::from_value(old).unwrap();
+        assert_eq!((back.norm_group_size, back.orientation_channels, back.cell_cues), (0, false, false));
+        let mut s = spec(64);
+        s.cell_cues = true;
+        assert!(matches!(s.validate(), Err(NetError::Spec(_))), "cues come from the orientation planes");
         let o = OutputSpec::integer("n_p", 1, 7);
         assert_eq!(o.denormalise(0.0), 1.0);
         assert_eq!(o.denormalise(1.0), 7.0);

@@ -4,8 +4,10 @@
 //!
 //! ```text
 //! input (B,4,H,W), H and W multiples of px_per_cell = 2^K
-//!   block k = 0..K: [conv3×3 + LeakyReLU] × convs_per_block  →  max-pool 2  (H/2^K = cells)
-//!   cell convs:     [conv3×3 + LeakyReLU] per entry of cell_convs          (a cell sees its neighbours)
+//!   block k = 0..K: [conv3×3 (+ GroupNorm) + LeakyReLU] × convs_per_block  →  max-pool 2
+//!                   (H/2^K = cells)
+//!   cell convs:     [conv3×3 (+ GroupNorm) + LeakyReLU] per entry of cell_convs
+//!                   (a cell sees its neighbours)
 //!   cell head:      conv1×1 → (B,1,h,w) logits: > 0 means the horizontal yarn (weft) is on top
 //!   parameter head: spatial mean ‖ max of the cell features → fc (hidden) → LeakyReLU →
 //!                   (mean = sigmoid, log-variance clamped to [−12, 2]) per output
@@ -13,8 +15,14 @@
 //!
 //! Being fully convolutional, the network reads a view of any number of cells: the fit's repeat
 //! tiled to at least the training views' 8 × 8 cells. Variable names (safetensors keys):
-//! `block{k}.conv{j}`, `cell{j}`, `cell_head`, `fc1`, `head` (each `.weight`, `.bias`). Use
+//! `block{k}.conv{j}`, `cell{j}`, `cell_head`, `fc1`, `head` (each `.weight`, `.bias`), and with
+//! group normalisation `block{k}.norm{j}`, `cellnorm{j}` (each `.scale`, `.shift`). Use
 //! [`seeded_init`] after building: candle's own initialisers are not seedable.
+//!
+//! Group normalisation (Wu & He 2018, "Group Normalization"; [`NetSpec::norm_group_size`] > 0)
+//! normalises each sample's activations over groups of channels and all pixels, so training and
+//! inference compute the same function (no running statistics as in batch normalisation, whose
+//! batch-of-32 estimates would differ from the one-view inference pass).
 
 use super::{NetSpec, INPUT_CHANNELS};
 use candle_core::{DType, Device, Module, Result, Tensor};
@@ -31,8 +39,8 @@ pub const LOG_VAR_RANGE: (f64, f64) = (-12.0, 2.0);
 #[derive(Debug)]
 pub struct PreNet {
     spec: NetSpec,
-    blocks: Vec<Vec<Conv2d>>,
-    cell: Vec<Conv2d>,
+    blocks: Vec<Vec<(Conv2d, Option<GroupNorm>)>>,
+    cell: Vec<(Conv2d, Option<GroupNorm>)>,
     cell_head: Conv2d,
     fc1: Option<Linear>,
     head: Option<Linear>,
@@ -54,18 +62,23 @@ impl PreNet {
     pub fn new(spec: &NetSpec, vb: VarBuilder) -> Result<Self> {
         let pad = Conv2dConfig { padding: 1, ..Default::default() };
         let mut blocks = Vec::new();
-        let mut cin = INPUT_CHANNELS;
+        let mut cin = INPUT_CHANNELS + if spec.orientation_channels { 2 } else { 0 };
         for (k, &c) in spec.backbone.iter().enumerate() {
             let mut convs = Vec::new();
             for j in 0..spec.convs_per_block {
-                convs.push(conv2d(cin, c, 3, pad, vb.pp(format!("block{k}.conv{j}")))?);
+                let conv = conv2d(cin, c, 3, pad, vb.pp(format!("block{k}.conv{j}")))?;
+                convs.push((conv, GroupNorm::new(spec, c, vb.pp(format!("block{k}.norm{j}")))?));
                 cin = c;
             }
             blocks.push(convs);
         }
+        if spec.cell_cues {
+            cin += CELL_CUES;
+        }
         let mut cell = Vec::new();
         for (j, &c) in spec.cell_convs.iter().enumerate() {
-            cell.push(conv2d(cin, c, 3, pad, vb.pp(format!("cell{j}")))?);
+            let conv = conv2d(cin, c, 3, pad, vb.pp(format!("cell{j}")))?;
+            cell.push((conv, GroupNorm::new(spec, c, vb.pp(format!("cellnorm{j}")))?));
             cin = c;
         }
         let cell_head = conv2d(cin, 1, 1, Conv2dConfig::default(), vb.pp("cell_head"))?;
@@ -93,15 +106,26 @@ impl PreNet {
         // any learning rate from 3e-4 to 1e-2), and a dead unit never recovers.
         let s = self.spec.leaky_slope;
         let leaky = |t: Tensor| -> Result<Tensor> { (t.relu()? * (1.0 - s))? + (t * s)? };
-        let mut h = x.clone();
+        let mut h = if self.spec.orientation_channels { with_orientation_channels(x)? } else { x.clone() };
+        let cues = if self.spec.cell_cues { Some(cell_cues(&h, self.spec.px_per_cell)?) } else { None };
+        let layer = |h: &Tensor, (conv, norm): &(Conv2d, Option<GroupNorm>)| -> Result<Tensor> {
+            let z = h.apply(conv)?;
+            leaky(match norm {
+                Some(n) => n.forward(&z)?,
+                None => z,
+            })
+        };
         for convs in &self.blocks {
-            for conv in convs {
-                h = leaky(h.apply(conv)?)?;
+            for l in convs {
+                h = layer(&h, l)?;
             }
             h = h.max_pool2d(2)?;
         }
-        for conv in &self.cell {
-            h = leaky(h.apply(conv)?)?;
+        if let Some(c) = &cues {
+            h = Tensor::cat(&[&h, c], 1)?;
+        }
+        for l in &self.cell {
+            h = layer(&h, l)?;
         }
         let cell_logits = h.apply(&self.cell_head)?.squeeze(1)?;
         let (mut mean, mut log_var) = (None, None);
@@ -116,6 +140,82 @@ impl PreNet {
             log_var = Some(out.narrow(1, n, n)?.clamp(LOG_VAR_RANGE.0, LOG_VAR_RANGE.1)?);
         }
         Ok(NetOutput { cell_logits, mean, log_var })
+    }
+}
+
+/// `x` with two more planes, `|∂I/∂x|` and `|∂I/∂y|` of the mean `I` of its three colour
+/// planes (central differences on the edge-replicated plane, per pixel).
+///
+/// Why: whether the weft or the warp is on top of a cell shows as the orientation of the
+/// intensity changes inside it — a horizontal yarn on top varies along y and hardly along x, a
+/// vertical one the other way round (the orientation energy of classic texture analysis, e.g.
+/// the structure tensor of Bigün & Granlund 1987). Given these planes, the first layer does not
+/// have to discover derivative filters before the cell loss can leave ln 2. Computed inside the
+/// network so that the dihedral augmentation (a transpose swaps the two planes) and inference
+/// need no special handling.
+fn with_orientation_channels(x: &Tensor) -> Result<Tensor> {
+    let lum = x.narrow(1, 0, 3)?.mean_keepdim(1)?;
+    let padded = lum.pad_with_same(2, 1, 1)?.pad_with_same(3, 1, 1)?;
+    let (_, _, h, w) = lum.dims4()?;
+    let gx = ((padded.narrow(2, 1, h)?.narrow(3, 2, w)? - padded.narrow(2, 1, h)?.narrow(3, 0, w)?)? * 0.5)?;
+    let gy = ((padded.narrow(2, 2, h)?.narrow(3, 1, w)? - padded.narrow(2, 0, h)?.narrow(3, 1, w)?)? * 0.5)?;
+    Tensor::cat(&[x, &gx.abs()?, &gy.abs()?], 1)
+}
+
+/// Planes [`cell_cues`] adds at cell resolution.
+const CELL_CUES: usize = 2;
+
+/// Per cell of `px` × `px` pixels, from the two orientation planes of
+/// `with_orientation_channels` (channels 4 and 5 of `x`), their cell means `gx`, `gy` turned into
+/// `ln((gy + ε) / (gx + ε))` (> 0: the intensity changes mostly along y, as across a weft lying
+/// on top) and `ln(gx + gy + ε)` (how much texture there is to judge by), `(B, 2, H/px, W/px)`.
+///
+/// Why: fed beside the trunk's features into the layers at cell resolution, the cell head has a
+/// linear cue for over/under from the first step. Measured (session 9, examples/net_diag `cue`):
+/// the sign of this ratio alone reads 55 % of the grid cells of the default set right (61 %
+/// front-lit), so it is a weak cue, and a first epoch with it stayed at chance like without.
+fn cell_cues(x: &Tensor, px: usize) -> Result<Tensor> {
+    const EPS: f64 = 0.01;
+    let g = x.narrow(1, INPUT_CHANNELS, 2)?.avg_pool2d(px)?;
+    let (gx, gy) = ((g.narrow(1, 0, 1)? + EPS)?, (g.narrow(1, 1, 1)? + EPS)?);
+    let ratio = (gy.log()? - gx.log()?)?;
+    let strength = (gx + gy)?.log()?;
+    Tensor::cat(&[&ratio, &strength], 1)
+}
+
+/// Group normalisation of a `(B, C, H, W)` activation (Wu & He 2018): the channels are split
+/// into `C / group_size` groups and each sample's group is standardised over its channels and
+/// pixels, `ŷ = (y − μ) / √(σ² + ε)`, then scaled and shifted per channel, `γ_c ŷ + β_c`.
+#[derive(Debug)]
+struct GroupNorm {
+    groups: usize,
+    scale: Tensor,
+    shift: Tensor,
+}
+
+/// ε of [`GroupNorm`]: keeps a constant group (zero variance) finite.
+const GN_EPS: f64 = 1e-5;
+
+impl GroupNorm {
+    /// The layer for `channels` channels when the spec asks for normalisation, else `None`.
+    fn new(spec: &NetSpec, channels: usize, vb: VarBuilder) -> Result<Option<Self>> {
+        if spec.norm_group_size == 0 {
+            return Ok(None);
+        }
+        let groups = (channels / spec.norm_group_size).max(1);
+        let scale = vb.get_with_hints(channels, "scale", candle_nn::Init::Const(1.0))?;
+        let shift = vb.get_with_hints(channels, "shift", candle_nn::Init::Const(0.0))?;
+        Ok(Some(Self { groups, scale, shift }))
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, c, h, w) = x.dims4()?;
+        let g = x.reshape((b, self.groups, (c / self.groups) * h * w))?;
+        let mean = g.mean_keepdim(2)?;
+        let centred = g.broadcast_sub(&mean)?;
+        let var = centred.sqr()?.mean_keepdim(2)?;
+        let normed = centred.broadcast_div(&(var + GN_EPS)?.sqrt()?)?.reshape((b, c, h, w))?;
+        normed.broadcast_mul(&self.scale.reshape((1, c, 1, 1))?)?.broadcast_add(&self.shift.reshape((1, c, 1, 1))?)
     }
 }
 
@@ -158,7 +258,8 @@ pub fn loss(out: &NetOutput, cells: &Tensor, targets: &Tensor, param_weight: f64
     Ok(LossTerms { total, bce, nll })
 }
 
-/// Overwrite every variable of `varmap` deterministically from `seed`: biases 0, weights
+/// Overwrite every variable of `varmap` deterministically from `seed`: biases and group-norm
+/// shifts 0, group-norm scales 1, weights
 /// He-uniform (`±√(6/fan_in)`), except the two heads (`±√(1/fan_in)`, so initial logits ≈ 0,
 /// means ≈ 0.5 and log-variances ≈ 0). Variables are visited sorted by name so the result does
 /// not depend on `HashMap` order.
@@ -171,8 +272,10 @@ pub fn seeded_init(varmap: &VarMap, seed: u64) -> Result<()> {
         let var = &data[name];
         let dims = var.dims().to_vec();
         let n: usize = dims.iter().product();
-        let vals: Vec<f32> = if name.ends_with("bias") {
+        let vals: Vec<f32> = if name.ends_with("bias") || name.ends_with(".shift") {
             vec![0.0; n]
+        } else if name.ends_with(".scale") {
+            vec![1.0; n]
         } else {
             let fan_in: usize = dims[1..].iter().product::<usize>().max(1);
             let small = name.starts_with("head.") || name.starts_with("cell_head.");
@@ -214,9 +317,10 @@ mod tests {
 
     #[test]
     fn forward_shapes_and_ranges_for_any_number_of_cells() -> Result<()> {
-        let s = spec();
-        let (_vm, net) = build(&s, 1)?;
-        for (h, w) in [(16, 16), (12, 20)] {
+        let mut with_cues = spec();
+        (with_cues.orientation_channels, with_cues.cell_cues, with_cues.norm_group_size) = (true, true, 4);
+        for ((h, w), s) in [(16, 16), (12, 20)].into_iter().flat_map(|d| [(d, spec()), (d, with_cues.clone())]) {
+            let (_vm, net) = build(&s, 1)?;
             let x = Tensor::randn(0f32, 1.0, (5, 4, h, w), &Device::Cpu)?;
             let out = net.forward(&x)?;
             assert_eq!(out.cell_logits.dims(), &[5, h / 4, w / 4]);
@@ -268,6 +372,69 @@ mod tests {
         assert!((l.bce - bce).abs() < 1e-5 && (l.nll - nll).abs() < 1e-5, "{l:?}");
         let beta = (-1.0f32).exp() * nll;
         assert!((l.total.to_scalar::<f32>()? - (bce + 2.0 * beta)).abs() < 1e-5);
+        Ok(())
+    }
+
+    #[test]
+    fn orientation_planes_follow_the_stripes() -> Result<()> {
+        // Horizontal stripes two rows wide (rows 0 0 1 1 0 0 in every colour plane): |∂I/∂y| =
+        // 0.5 on rows 1–4 (central difference across a stripe edge), 0 on the edge rows (their
+        // replicated neighbour equals the inner one), and |∂I/∂x| = 0 everywhere; the input
+        // planes pass through unchanged.
+        let vals: Vec<f32> = (0..4 * 36).map(|i| if i < 108 { ((i % 36 / 12) % 2) as f32 } else { 0.3 }).collect();
+        let x = Tensor::from_vec(vals.clone(), (1, 4, 6, 6), &Device::Cpu)?;
+        let y = with_orientation_channels(&x)?;
+        assert_eq!(y.dims(), &[1, 6, 6, 6]);
+        let v = y.flatten_all()?.to_vec1::<f32>()?;
+        assert_eq!(&v[..144], &vals[..]);
+        assert!(v[144..180].iter().all(|&g| g == 0.0), "no change along x");
+        for (k, g) in v[180..].iter().enumerate() {
+            let want = if (1..5).contains(&(k / 6)) { 0.5 } else { 0.0 };
+            assert!((g - want).abs() < 1e-6, "row {}: {g} vs {want}", k / 6);
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn cell_cues_say_which_way_the_cell_varies() -> Result<()> {
+        // One 4 × 4 cell, orientation planes |∂x| = 0.09 and |∂y| = 0.39 everywhere: the cues are
+        // ln(0.4 / 0.1) and ln(0.5).
+        let mut v = vec![0.0f32; 6 * 16];
+        v[64..80].fill(0.09);
+        v[80..].fill(0.39);
+        let x = Tensor::from_vec(v, (1, 6, 4, 4), &Device::Cpu)?;
+        let c = cell_cues(&x, 4)?.flatten_all()?.to_vec1::<f32>()?;
+        assert!((c[0] - 4.0f32.ln()).abs() < 1e-5 && (c[1] - 0.5f32.ln()).abs() < 1e-5, "{c:?}");
+        Ok(())
+    }
+
+    #[test]
+    fn group_norm_standardises_each_samples_groups() -> Result<()> {
+        // 2 samples × 4 channels (2 groups of 2) × 3 × 3 px with very different levels and
+        // spreads per sample and group: after the layer (scale 1, shift 0) every group of every
+        // sample has mean 0 and variance 1 (up to ε).
+        let mut s = spec();
+        s.norm_group_size = 2;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        let gn = GroupNorm::new(&s, 4, vb)?.expect("normalisation is on");
+        assert_eq!(gn.groups, 2);
+        let vals: Vec<f32> = (0..72).map(|i| (i % 7) as f32 * (1 + i / 18) as f32 + 10.0 * (i / 36) as f32).collect();
+        let x = Tensor::from_vec(vals, (2, 4, 3, 3), &Device::Cpu)?;
+        let y = gn.forward(&x)?.reshape((4, 18))?.to_vec2::<f32>()?;
+        for g in &y {
+            let m = g.iter().sum::<f32>() / 18.0;
+            let v = g.iter().map(|t| (t - m).powi(2)).sum::<f32>() / 18.0;
+            assert!(m.abs() < 1e-5 && (v - 1.0).abs() < 1e-3, "mean {m}, variance {v}");
+        }
+        // Without normalisation the spec builds no norm variables (models before session 9 load).
+        let (vm, _) = build(&spec(), 1)?;
+        assert!(var_shapes(&vm).iter().all(|(n, _)| !n.contains("norm")));
+        let (vm, _) = build(&s, 1)?;
+        let names: Vec<String> = var_shapes(&vm).into_iter().map(|v| v.0).collect();
+        assert!(names.contains(&"block1.norm0.scale".to_string()) && names.contains(&"cellnorm0.shift".to_string()));
+        let d = vm.data().lock().unwrap();
+        assert_eq!(d["block0.norm0.scale"].as_tensor().to_vec1::<f32>()?, vec![1.0; 4], "seeded init: scale 1");
         Ok(())
     }
 
