@@ -273,7 +273,7 @@ fn edge_lattice_score(g: &Gray, angle_deg: f64) -> f64 {
 }
 
 /// Half-width in degrees of the window around 0° whose every coarse angle is a candidate of
-/// [`rescore_by_edges`], whatever its Radon energy. A close-up is taken roughly aligned, within a
+/// `rescore_by_edges`, whatever its Radon energy. A close-up is taken roughly aligned, within a
 /// few degrees; on a twill whose boundaries are soft (hairy yarns) the yarn axes need not be a
 /// Radon peak at all (FabricNET W117 and W125: only the diagonal at −11° / −15° peaked), so
 /// scoring exactly 0° (session 6) missed yarns lying at −2° or +1°.
