@@ -11,7 +11,7 @@ use woven::fit::capture::{estimate_capture, CaptureEstimate};
 use woven::fit::demo::{demo_cloth, param_errors, synthetic_target};
 use woven::fit::eval::{eval, Ablation, EvalOptions, EvalPath};
 use woven::fit::output::photo_scores;
-use woven::fit::real::{eval_real, RealOptions};
+use woven::fit::real::{eval_real, periodic_ceiling, RealOptions};
 use woven::fit::renders::eval_renders;
 use woven::fit::report::quantile;
 use woven::fit::{check_input, fit, fit_prepared, write_fit_outputs, FitMode, FitOptions, FitResult, MIN_INPUT_SIDE};
@@ -260,17 +260,27 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
             )?;
         }
         // fit.png, the registered render (no photo noise): the photo's size (the output framing).
-        let scores = written.registered.as_ref().map(|r| photo_scores(&r.blurred, &input));
+        // Beside it, the photo's periodic ceiling: what a fit that matched its crop exactly would score.
+        let scores = written
+            .registered
+            .as_ref()
+            .map(|r| (photo_scores(&r.blurred, &input), res.prep.as_ref().map(|p| periodic_ceiling(p, &input))));
         Ok((res, stopped, scores))
     })?;
     let dest = if stopped { sibling(&args.out, "partial")? } else { args.out.clone() };
     staging.install(&dest)?;
     print_fit(&args.image, &dest, &res);
-    if let Some(s) = scores {
+    if let Some((s, ceiling)) = scores {
         println!(
             "fit.png against the whole photo: PSNR {:.2} dB, SSIM {:.3} (the crop the fit matched: PSNR {:.2} dB)",
             s.psnr_db, s.ssim, res.psnr_db
         );
+        if let Some(c) = ceiling {
+            println!(
+                "periodic ceiling of this photo: {c:.2} dB (its own mean repeat, registered like fit.png; what differs \
+                 between the repeats — hair, wandering yarns — no periodic replica reproduces)"
+            );
+        }
     }
     if stopped {
         let kept = if args.out.join("fit.json").is_file() {
