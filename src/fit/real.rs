@@ -18,6 +18,7 @@ use super::report::quantile;
 use super::{fit_prepared, FitOptions};
 use crate::image_io::Image;
 use crate::pattern::WeaveClass;
+use crate::prep::image_ops::warp_rgb;
 use crate::prep::Prepared;
 use crate::prep::{diagnostic_overlay, prepare, PrepOptions};
 use anyhow::{bail, Context, Result};
@@ -258,27 +259,9 @@ impl RealReport {
 /// whole-photo PSNR for any periodic replica of this preparation. What the photo holds beyond one
 /// repeated tile (flyaway fibres, yarns that wander, uneven lighting) lies above it.
 pub fn periodic_ceiling(prepared: &Prepared, photo: &Image) -> f32 {
-    let reg = Image::from_rgb32f(&prepared.regularized);
     let inv = crate::math::linalg::mat3_inv(&prepared.homography).unwrap_or(crate::math::linalg::IDENTITY);
-    let (rw, rh) = (reg.width as i64, reg.height as i64);
-    let at = |i: i64, j: i64| reg.get(i.clamp(0, rw - 1) as u32, j.clamp(0, rh - 1) as u32);
-    let mut data = Vec::with_capacity((photo.width * photo.height) as usize);
-    for y in 0..photo.height {
-        for x in 0..photo.width {
-            let (u, v) = crate::math::linalg::apply(&inv, x as f64, y as f64);
-            let (u, v) = if u.is_finite() && v.is_finite() { (u, v) } else { (0.0, 0.0) };
-            let (u0, v0) = (u.floor(), v.floor());
-            let (fx, fy) = ((u - u0) as f32, (v - v0) as f32);
-            let (i, j) = (u0 as i64, v0 as i64);
-            let (p00, p10, p01, p11) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
-            data.push(
-                [0, 1, 2].map(|k| {
-                    (1.0 - fy) * ((1.0 - fx) * p00[k] + fx * p10[k]) + fy * ((1.0 - fx) * p01[k] + fx * p11[k])
-                }),
-            );
-        }
-    }
-    Image::new(photo.width, photo.height, data).psnr_srgb(photo)
+    let back = warp_rgb(&prepared.regularized, &inv, photo.width as usize, photo.height as usize);
+    Image::from_rgb32f(&back).psnr_srgb(photo)
 }
 
 /// Path of a photo's outputs under `save`: its path in the folder without the extension.
