@@ -87,7 +87,7 @@ fn views(data: &Path, model: &Path, outdir: &Path) -> Result<()> {
     if labels.len() != samples.len() {
         bail!("labels.jsonl has {} lines for {} views", labels.len(), samples.len());
     }
-    let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    let mut groups = GroupMeans::default();
     for (k, (s, l)) in samples.iter().zip(&labels).enumerate() {
         let p = model.predict(&s.image)?;
         let truth = s.cell_labels();
@@ -118,17 +118,13 @@ fn views(data: &Path, model: &Path, outdir: &Path) -> Result<()> {
             format!("smaller radius {}", r_e.min(r_a).floor()),
             format!("class {}", l["class_name"].as_str().unwrap_or("?")),
         ] {
-            let g = groups.entry(key).or_default();
-            g.0 += acc;
-            g.1 += 1;
+            groups.add(key, acc);
         }
         if k < 24 {
             label_sheet(&s.image, &truth, &p.cell_logits)?.save(outdir.join(format!("v{k:04}.png")))?;
         }
     }
-    for (key, (sum, n)) in &groups {
-        eprintln!("{key}: {n} views, grid cells right {:.1}%", 100.0 * sum / *n as f64);
-    }
+    groups.print("", "grid cells right ");
     Ok(())
 }
 
@@ -176,7 +172,7 @@ fn cue(data: &Path) -> Result<()> {
     let text = std::fs::read_to_string(data.join("labels.jsonl"))?;
     let labels: Vec<serde_json::Value> =
         text.lines().map(serde_json::from_str).collect::<Result<_, _>>().context("parsing labels.jsonl")?;
-    let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    let mut groups = GroupMeans::default();
     for (s, l) in samples.iter().zip(&labels) {
         let (x, w, h) = woven::net::preprocess(&s.image, 8);
         let n = w * h;
@@ -210,14 +206,10 @@ fn cue(data: &Path) -> Result<()> {
         }
         let acc = right as f64 / total as f64;
         for key in ["all".to_string(), format!("rig {}", rig_name(l))] {
-            let g = groups.entry(key).or_default();
-            g.0 += acc;
-            g.1 += 1;
+            groups.add(key, acc);
         }
     }
-    for (key, (sum, n)) in &groups {
-        eprintln!("cue alone, {key}: {n} views, grid cells right {:.1}%", 100.0 * sum / *n as f64);
-    }
+    groups.print("cue alone, ", "grid cells right ");
     Ok(())
 }
 
@@ -227,7 +219,7 @@ fn cue(data: &Path) -> Result<()> {
 fn cluster(data: &Path, model: &Path) -> Result<()> {
     let model = PreEstimator::load(model)?;
     let (_, samples, _) = woven::pre::load_dataset(data, &NoProgress)?;
-    let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    let mut groups = GroupMeans::default();
     for s in &samples {
         let p = model.predict(&s.image)?;
         let truth = s.cell_labels();
@@ -257,13 +249,28 @@ fn cluster(data: &Path, model: &Path) -> Result<()> {
             rows.push((format!("{split} separated: pooled"), after));
         }
         for (key, a) in rows {
-            let e = groups.entry(key).or_default();
-            e.0 += a;
-            e.1 += 1;
+            groups.add(key, a);
         }
     }
-    for (key, (sum, n)) in &groups {
-        eprintln!("{key}: {n} views, {:.1}%", 100.0 * sum / *n as f64);
-    }
+    groups.print("", "");
     Ok(())
+}
+
+/// Per-key means of per-view accuracies, printed in key order.
+#[derive(Default)]
+struct GroupMeans(BTreeMap<String, (f64, usize)>);
+
+impl GroupMeans {
+    fn add(&mut self, key: String, value: f64) {
+        let e = self.0.entry(key).or_default();
+        e.0 += value;
+        e.1 += 1;
+    }
+
+    /// One line per key: `{prefix}{key}: {n} views, {what}{mean}%`.
+    fn print(&self, prefix: &str, what: &str) {
+        for (key, (sum, n)) in &self.0 {
+            eprintln!("{prefix}{key}: {n} views, {what}{:.1}%", 100.0 * sum / *n as f64);
+        }
+    }
 }

@@ -84,7 +84,6 @@ mod tests {
     use super::*;
     use crate::fit::demo::demo_cloth;
     use crate::fit::target::fit_scene;
-    use crate::render::{Prepared, RenderOptions};
     use crate::scene::LightRig;
 
     #[test]
@@ -92,8 +91,7 @@ mod tests {
         let truth = demo_cloth();
         let (n_e, n_a, c) = (truth.pattern.n_e(), truth.pattern.n_a(), 8);
         let scene = fit_scene(n_e, n_a, c, 4, 2, &LightRig::default_rig());
-        let target = Prepared::new(&truth, &scene, &RenderOptions::default()).render(&truth.appearance);
-        let ev = Evaluator::new(scene, target, 2);
+        let ev = Evaluator::of_own_render(&truth, scene);
         let mut cloth = truth.clone();
         for col in [&mut cloth.appearance.r_b_e, &mut cloth.appearance.r_b_a, &mut cloth.appearance.s_b_e] {
             *col = [0.5; 3];

@@ -540,6 +540,16 @@ pub(crate) fn state_loss(ev: &Evaluator, cloth: &mut ClothParams) -> f32 {
 }
 
 #[cfg(test)]
+impl Evaluator {
+    /// For tests: an evaluator whose target is `truth` re-shaded from the evaluator's own recorded
+    /// paths, so the loss at the truth is exactly zero and what an optimiser leaves is its own error.
+    pub(crate) fn of_own_render(truth: &ClothParams, scene: Scene) -> Evaluator {
+        let target = Prepared::new(truth, &scene, &RenderOptions::default()).render(&truth.appearance);
+        Evaluator::new(scene, target, 2)
+    }
+}
+
+#[cfg(test)]
 mod tests {
     use super::*;
     use crate::fit::target::fit_scene;

@@ -185,7 +185,6 @@ mod tests {
     use crate::fit::demo::demo_cloth;
     use crate::fit::options::{Control, RenderSettings};
     use crate::fit::target::fit_scene;
-    use crate::render::{Prepared, RenderOptions};
     use std::time::Instant;
 
     #[test]
@@ -194,8 +193,7 @@ mod tests {
         let render = RenderSettings { px_per_cell: 6, spp: 2, ..RenderSettings::default() };
         let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
         let scene = fit_scene(n_e, n_a, render.px_per_cell, render.spp, render.seed, &render.lights);
-        let target = Prepared::new(&truth, &scene, &RenderOptions::default()).render(&truth.appearance);
-        let ev = Evaluator::new(scene, target, 2);
+        let ev = Evaluator::of_own_render(&truth, scene);
         let control = Control::default();
         let st = Stage { ev: &ev, render: &render, control: &control, cells: true, clock: Instant::now() };
         let wrong = toggled_cell(&truth, 1, 2).expect("a weave");

@@ -50,7 +50,6 @@ mod tests {
     use crate::fit::demo::demo_cloth;
     use crate::fit::options::RenderSettings;
     use crate::fit::target::fit_scene;
-    use crate::render::{Prepared, RenderOptions};
 
     /// The scan on the fit's own one-repeat target: a render without hairs keeps none; a render
     /// with hairs (density 3) gets its density back.
@@ -60,8 +59,7 @@ mod tests {
         let run = |truth: &ClothParams| {
             let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
             let scene = fit_scene(n_e, n_a, render.px_per_cell, render.spp, render.seed, &render.lights);
-            let target = Prepared::new(truth, &scene, &RenderOptions::default()).render(&truth.appearance);
-            let ev = Evaluator::new(scene, target, 2);
+            let ev = Evaluator::of_own_render(truth, scene);
             let mut c = truth.clone();
             c.hair = Hair::default();
             fit_hair(&ev, &mut c, 4, &AtomicBool::new(false));

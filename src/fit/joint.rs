@@ -406,13 +406,11 @@ mod tests {
     fn a_run_that_cannot_improve_ends_after_the_plateau_window() {
         use crate::fit::options::{Control, RenderSettings};
         use crate::fit::target::fit_scene;
-        use crate::render::{Prepared, RenderOptions};
         let truth = crate::fit::demo::demo_cloth();
         let render = RenderSettings { px_per_cell: 4, spp: 1, ..RenderSettings::default() };
         let (n_e, n_a) = (truth.pattern.n_e(), truth.pattern.n_a());
         let scene = fit_scene(n_e, n_a, render.px_per_cell, render.spp, render.seed, &render.lights);
-        let target = Prepared::new(&truth, &scene, &RenderOptions::default()).render(&truth.appearance);
-        let ev = Evaluator::new(scene, target, 2);
+        let ev = Evaluator::of_own_render(&truth, scene);
         let control = Control::default();
         let st = Stage { ev: &ev, render: &render, control: &control, cells: true, clock: Instant::now() };
         let n = 40;

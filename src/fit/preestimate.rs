@@ -403,7 +403,6 @@ mod tests {
     #[test]
     fn the_twin_contest_turns_a_swapped_start_back_to_the_truth() {
         use crate::fit::demo::demo_cloth;
-        use crate::render::{Prepared, RenderOptions};
         use crate::scene::LightRig;
         // Plain weave with two distinct families and radii, as in a render whose fit came back
         // inverted with the colours swapped.
@@ -414,8 +413,7 @@ mod tests {
         (truth.r_e, truth.r_a) = (4.5, 3.5);
         let (n_e, n_a, c) = (truth.pattern.n_e(), truth.pattern.n_a(), 12);
         let scene = fit_scene(n_e, n_a, c, 2, 1, &LightRig::default_rig());
-        let target = Prepared::new(&truth, &scene, &RenderOptions::default()).render(&truth.appearance);
-        let ev = Evaluator::new(scene, target, 2);
+        let ev = Evaluator::of_own_render(&truth, scene);
         let stop = AtomicBool::new(false);
         let swapped = inverted_twin(&truth);
         let mut start = swapped.clone();

@@ -269,15 +269,13 @@ pub(super) fn appearance_restarts(
 mod tests {
     use super::*;
     use crate::fit::target::fit_scene;
-    use crate::render::{Prepared, RenderOptions};
     use crate::scene::LightRig;
 
     /// An evaluator whose target is `truth` rendered with the evaluator's own samples: the loss
     /// at the truth is exactly zero, so what the optimiser leaves is its own error.
     fn noise_free(truth: &ClothParams) -> Evaluator {
         let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, &LightRig::default_rig());
-        let target = Prepared::new(truth, &scene, &RenderOptions::default()).render(&truth.appearance);
-        Evaluator::new(scene, target, 2)
+        Evaluator::of_own_render(truth, scene)
     }
 
     #[test]

@@ -10,8 +10,8 @@ use std::time::Instant;
 /// One stage of a fit.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct StageTime {
-    /// Stage name (`prep`, `rank`, `warm-up`, `sweeps`, `twin`, `view`, `joint`, `finish`,
-    /// `polish`, `shape`, `hair`, `texture`, `output`).
+    /// Stage name (`prep`, `rank`, `warm-up`, `sweeps`, `twin`, `view`, `joint`, `rivals`,
+    /// `toggles`, `polish`, `shape`, `hair`, `texture`, `output`).
     pub stage: &'static str,
     /// Wall seconds of the stage.
     pub secs: f64,

@@ -41,14 +41,21 @@ pub fn texture(p: &[Vec<u8>], tx: f64, ty: f64) -> [f32; 3] {
 /// Renders a `w × h` image; `map(x, y)` gives the texture coordinates (in pixels of the flat
 /// cloth) of image point `(x, y)`; the pitch converts them to yarn units.
 pub fn render(p: &[Vec<u8>], pitch: f64, w: u32, h: u32, map: impl Fn(f64, f64) -> (f64, f64)) -> Rgb32FImage {
+    supersample(w, h, |x, y| {
+        let (tx, ty) = map(x, y);
+        texture(p, tx / pitch, ty / pitch)
+    })
+}
+
+/// A `w × h` image of `shade(x, y)` (image coordinates), 3×3 super-sampled.
+fn supersample(w: u32, h: u32, shade: impl Fn(f64, f64) -> [f32; 3]) -> Rgb32FImage {
     let mut img = Rgb32FImage::new(w, h);
     let offs = [-1.0 / 3.0, 0.0, 1.0 / 3.0];
     for (x, y, px) in img.enumerate_pixels_mut() {
         let mut acc = [0.0f32; 3];
         for oy in offs {
             for ox in offs {
-                let (tx, ty) = map(x as f64 + ox, y as f64 + oy);
-                let c = texture(p, tx / pitch, ty / pitch);
+                let c = shade(x as f64 + ox, y as f64 + oy);
                 for k in 0..3 {
                     acc[k] += c[k] / 9.0;
                 }
@@ -126,21 +133,9 @@ pub fn render_texture_rotated(
 ) -> Rgb32FImage {
     let (s, c) = a_deg.to_radians().sin_cos();
     let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
-    let mut img = Rgb32FImage::new(w, h);
-    let offs = [-1.0 / 3.0, 0.0, 1.0 / 3.0];
-    for (x, y, px) in img.enumerate_pixels_mut() {
-        let mut acc = [0.0f32; 3];
-        for oy in offs {
-            for ox in offs {
-                let (dx, dy) = (x as f64 + ox - cx, y as f64 + oy - cy);
-                let (tx, ty) = (c * dx + s * dy + 1000.0 * pitch[0], -s * dx + c * dy + 1000.0 * pitch[1]);
-                let v = tex(tx / pitch[0], ty / pitch[1]);
-                for k in 0..3 {
-                    acc[k] += v[k] / 9.0;
-                }
-            }
-        }
-        px.0 = acc;
-    }
-    img
+    supersample(w, h, |x, y| {
+        let (dx, dy) = (x - cx, y - cy);
+        let (tx, ty) = (c * dx + s * dy + 1000.0 * pitch[0], -s * dx + c * dy + 1000.0 * pitch[1]);
+        tex(tx / pitch[0], ty / pitch[1])
+    })
 }
