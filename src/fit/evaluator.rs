@@ -459,6 +459,19 @@ impl Evaluator {
         f.iter().zip(&self.target_f).map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()).sum::<f32>() / n
     }
 
+    /// Effective number of independent samples in the residual of `img` against the target
+    /// (the loss values' blocks over the residual's correlation area, see
+    /// `parsimony::effective_samples`): what the pattern choice of the finish weighs a loss
+    /// ratio against.
+    pub(crate) fn effective_samples_of(&self, img: &Image) -> f64 {
+        let observed = self.observe(img);
+        let blocks = Blocks::new(observed.width, observed.height, self.b);
+        let f = loss_values(&observed, self.b);
+        let residual: Vec<[f32; 3]> =
+            f.iter().zip(&self.target_f).map(|(p, q)| [0, 1, 2].map(|k| p[k] - q[k])).collect();
+        super::parsimony::effective_samples(&residual, blocks.cols as usize, blocks.rows as usize)
+    }
+
     /// Loss (MSE of the loss values) of the recorded paths `cache` shaded with `a`, backdrop
     /// solved ([`Evaluator::shaded`]).
     pub(crate) fn loss_of(&self, cache: &PathCache, a: &Appearance) -> f32 {

@@ -10,7 +10,7 @@ use super::joint::JointRuns;
 use super::options::FinishOptions;
 use super::preestimate::PreEstimate;
 use super::stages::StageClock;
-use super::{refine, Stage};
+use super::{parsimony, refine, Stage};
 use crate::params::{ClothParams, NF_RANGE, NP_RANGE};
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -54,7 +54,9 @@ pub(crate) fn finish_runs(
 /// Finish of `best` against `others` (the other runs' best states, the runs' starts and the
 /// warmed-up candidates): a state found early was scored with a less converged appearance than
 /// one found late, so every rival gets the same appearance descent (`lm_iters` iterations) as the
-/// best and the lowest loss wins; then up to [`TOGGLE_ROUNDS`] single-cell contests
+/// best, the nearest named weave joins them when the best is none, and the lowest
+/// `PatternChoice` score wins (the loss, penalised for cells no named weave explains); then up
+/// to [`TOGGLE_ROUNDS`] single-cell contests
 /// ([`toggle_contest`]). Returns the loss and the cloth; `clock` closes the stages `rivals` and
 /// `toggles`.
 fn finish(
@@ -66,19 +68,28 @@ fn finish(
 ) -> (f32, ClothParams) {
     let (ev, stop) = (st.ev, &*st.control.stop);
     let quick = ev.resampled(QUICK_SPP, st.render.seed);
-    let finals = rivals(st, &quick, best, others);
-    let mut chosen: Option<(f32, ClothParams)> = None;
-    for mut c in finals {
-        let l = refine::polish(ev, &mut c, 0, lm_iters, stop);
-        if chosen.as_ref().is_none_or(|w| l < w.0) {
-            chosen = Some((l, c));
+    let choice = PatternChoice::new(st, best);
+    let mut finals = rivals(st, &quick, best, others);
+    if let Some(named) = choice.nearest_named(&best.pattern) {
+        if finals.iter().all(|f| f.pattern != named) {
+            let mut c = best.clone();
+            c.pattern = named;
+            finals.push(c);
         }
     }
-    let (mut loss, mut best_cloth) = chosen.unwrap_or_else(|| (f32::INFINITY, best.clone()));
+    let mut chosen: Option<(f64, f32, ClothParams)> = None;
+    for mut c in finals {
+        let l = refine::polish(ev, &mut c, 0, lm_iters, stop);
+        let score = choice.score(l, &c);
+        if chosen.as_ref().is_none_or(|w| score < w.0) {
+            chosen = Some((score, l, c));
+        }
+    }
+    let (_, mut loss, mut best_cloth) = chosen.unwrap_or_else(|| (f64::INFINITY, f32::INFINITY, best.clone()));
     clock.mark("rivals", ev, Some(&best_cloth));
     if st.cells {
         for _ in 0..TOGGLE_ROUNDS {
-            match toggle_contest(ev, &quick, &best_cloth, loss, lm_iters, stop) {
+            match toggle_contest(ev, &quick, &best_cloth, loss, lm_iters, &choice, stop) {
                 Some((l, c)) => (loss, best_cloth) = (l, c),
                 None => break,
             }
@@ -86,6 +97,44 @@ fn finish(
         clock.mark("toggles", ev, Some(&best_cloth));
     }
     (loss, best_cloth)
+}
+
+/// How the finish chooses among polished states: by the Bayesian information criterion of
+/// `parsimony` when the cells are estimated (a cell that breaks the nearest named weave must
+/// lower the loss by more than the picture's noise and mismatch can), by the loss alone for a
+/// fixed pattern.
+struct PatternChoice {
+    /// Named weaves of the grid (every shift, and their backs); empty for a fixed pattern.
+    named: Vec<crate::pattern::WeavePattern>,
+    /// Effective independent samples of the residual of the state the finish starts from.
+    n_eff: f64,
+}
+
+impl PatternChoice {
+    fn new(st: &Stage, best: &ClothParams) -> Self {
+        if !st.cells {
+            return PatternChoice { named: Vec::new(), n_eff: 1.0 };
+        }
+        let (n_e, n_a) = (best.pattern.n_e(), best.pattern.n_a());
+        let img = st.ev.shaded(&st.ev.record(best), &best.appearance);
+        PatternChoice { named: parsimony::named_weaves(n_e, n_a), n_eff: st.ev.effective_samples_of(&img) }
+    }
+
+    /// The named weave nearest to `p` when `p` is not one.
+    fn nearest_named(&self, p: &crate::pattern::WeavePattern) -> Option<crate::pattern::WeavePattern> {
+        match parsimony::irregular_cells(p, &self.named) {
+            (d, Some(q)) if d > 0 => Some(q.clone()),
+            _ => None,
+        }
+    }
+
+    /// Score of a polished state with loss `loss` (lower is better).
+    fn score(&self, loss: f32, c: &ClothParams) -> f64 {
+        if self.named.is_empty() {
+            return loss as f64;
+        }
+        parsimony::bic(loss, parsimony::irregular_cells(&c.pattern, &self.named).0, self.n_eff)
+    }
 }
 
 /// `best` and its rivals: `others` (each with its own appearance: a pattern's inverse comes with
@@ -133,7 +182,8 @@ fn rivals(st: &Stage, quick: &Evaluator, best: &ClothParams, others: &[ClothPara
 
 /// One contest of single-cell changes: every cell toggle of `cloth` is scored with its appearance
 /// held (a cheap trace on `quick`), then the [`TOGGLE_FINALISTS`] best get a Levenberg–Marquardt
-/// descent of the appearance on `ev` and compete with `loss`, the cloth's own polished loss.
+/// descent of the appearance on `ev` and compete with the cloth's own score (`choice` of its
+/// polished `loss`).
 /// With the appearance held, a wrong cell whose yarn colours are close (or that the appearance
 /// has adapted to) costs little to keep, so a greedy pass at fixed appearance can leave it.
 /// Returns the winning toggle, if one beats `loss`.
@@ -143,6 +193,7 @@ fn toggle_contest(
     cloth: &ClothParams,
     loss: f32,
     lm_iters: usize,
+    choice: &PatternChoice,
     stop: &AtomicBool,
 ) -> Option<(f32, ClothParams)> {
     let mut scored: Vec<(f32, ClothParams)> = Vec::new();
@@ -156,14 +207,16 @@ fn toggle_contest(
         }
     }
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let mut best: Option<(f32, ClothParams)> = None;
+    let own = choice.score(loss, cloth);
+    let mut best: Option<(f64, f32, ClothParams)> = None;
     for (_, mut cand) in scored.into_iter().take(TOGGLE_FINALISTS) {
         let l = refine::polish(ev, &mut cand, 0, lm_iters, stop);
-        if l < loss && best.as_ref().is_none_or(|b| l < b.0) {
-            best = Some((l, cand));
+        let score = choice.score(l, &cand);
+        if score < own && best.as_ref().is_none_or(|b| score < b.0) {
+            best = Some((score, l, cand));
         }
     }
-    best
+    best.map(|(_, l, c)| (l, c))
 }
 
 /// The winner's last polish (when `opts.fine_spp > 0`): appearance restarts, a polish to

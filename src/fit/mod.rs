@@ -47,6 +47,7 @@ pub mod input;
 mod joint;
 mod options;
 pub mod output;
+mod parsimony;
 mod preestimate;
 mod proposal;
 pub mod real;

@@ -1,0 +1,178 @@
+//! Which pattern the picture supports: a penalised loss for choosing among fitted patterns.
+//!
+//! The finish compares patterns that each got the same appearance descent. On a clean render
+//! the true pattern's loss is far below every other's, but on a hairy photo or a blurred
+//! multi-repeat view the residual is dominated by what no periodic replica reproduces (hair,
+//! wandering yarns, shading the model lacks), and a pattern a few cells off a named weave can
+//! win by a fraction of a percent by fitting that residual. The loss alone then decides nothing
+//! the picture determines.
+//!
+//! The choice is made with the Bayesian information criterion [Schwarz78] ("Estimating the
+//! dimension of a model"): for a Gaussian residual of `n` independent samples with variance
+//! estimated by the loss `L`, `−2 ln(likelihood) = n ln L + const`, and each free parameter costs
+//! `ln n`, so
+//!
+//! `BIC = n_eff · ln L + k · ln n_eff`,
+//!
+//! lower is better. The free parameters are the pattern's cells that a named weave of the grid
+//! does not explain (`k` = Hamming distance to the nearest named weave in any shift, or its back;
+//! 0 when no named weave fits the grid, where the criterion is the loss alone). A cell that
+//! breaks the weave's regularity is therefore kept only when it lowers the loss by a factor
+//! `exp(ln n_eff / n_eff)`, and the twill direction, the satin step or the basket pairing (all
+//! named, `k = 0`) is still decided by the loss alone.
+//!
+//! The residual's pixels are not independent: the blur of the view and model mismatch that
+//! spans a float correlate them. `n_eff` is the number of blocks divided by the residual's
+//! correlation area, the sum of its normalised periodic autocorrelation over the lags inside the
+//! first zero of its radial mean ([Geyer92], "Practical Markov chain Monte Carlo": the initial
+//! positive sequence estimator of the integrated autocorrelation, here in two dimensions). A
+//! residual of pure render noise has area ≈ 1 and `n_eff` ≈ the block count, so on a clean
+//! render a wrong cell's loss rise outweighs its `ln n_eff` many times over.
+
+use super::candidates::template_candidates;
+use crate::pattern::WeavePattern;
+
+/// Model-selection score of a fitted pattern: `n_eff · ln L + k · ln n_eff` (see the module
+/// docs). `loss` is clamped away from 0 so that a perfect fit scores finitely.
+pub(crate) fn bic(loss: f32, irregular_cells: usize, n_eff: f64) -> f64 {
+    let n = n_eff.max(1.0);
+    n * (loss.max(1e-12) as f64).ln() + irregular_cells as f64 * n.ln()
+}
+
+/// The named weaves that fit the grid of `p` (in every cyclic shift, and their backs).
+pub(crate) fn named_weaves(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
+    let mut out = template_candidates(n_e, n_a);
+    let backs: Vec<WeavePattern> = out.iter().map(|p| p.inverted()).collect();
+    for b in backs {
+        if !out.contains(&b) {
+            out.push(b);
+        }
+    }
+    out
+}
+
+/// Cells of `p` that the nearest of `named` does not explain (Hamming distance, shifts and backs
+/// included in `named`), with that weave; `(0, None)` when `named` is empty: no weave describes
+/// the grid, every pattern is equally free.
+pub(crate) fn irregular_cells<'a>(p: &WeavePattern, named: &'a [WeavePattern]) -> (usize, Option<&'a WeavePattern>) {
+    let dist = |q: &WeavePattern| {
+        (0..p.n_e()).map(|i| (0..p.n_a()).filter(|&j| p.get(i, j) != q.get(i, j)).count()).sum::<usize>()
+    };
+    named
+        .iter()
+        .filter(|q| q.n_e() == p.n_e() && q.n_a() == p.n_a())
+        .map(|q| (dist(q), q))
+        .min_by_key(|(d, _)| *d)
+        .map_or((0, None), |(d, q)| (d, Some(q)))
+}
+
+/// Effective number of independent samples of a periodic residual of `cols × rows` blocks
+/// (row-major, three channels): the block count over the correlation area (module docs).
+pub(crate) fn effective_samples(residual: &[[f32; 3]], cols: usize, rows: usize) -> f64 {
+    let n = cols * rows;
+    if n == 0 || residual.len() < n {
+        return 1.0;
+    }
+    let mut mean = [0.0f64; 3];
+    residual[..n].iter().for_each(|e| (0..3).for_each(|k| mean[k] += e[k] as f64 / n as f64));
+    let centred: Vec<[f64; 3]> = residual[..n].iter().map(|e| [0, 1, 2].map(|k| e[k] as f64 - mean[k])).collect();
+    let var: f64 = centred.iter().map(|e| e.iter().map(|x| x * x).sum::<f64>()).sum();
+    if var <= 1e-30 {
+        return n as f64;
+    }
+    // Normalised periodic autocorrelation at lag (dx, dy).
+    let rho = |dx: usize, dy: usize| -> f64 {
+        let mut s = 0.0;
+        for y in 0..rows {
+            let y2 = (y + dy) % rows;
+            for x in 0..cols {
+                let (a, b) = (&centred[y * cols + x], &centred[y2 * cols + (x + dx) % cols]);
+                s += a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+            }
+        }
+        s / var
+    };
+    // Lags up to half the shorter side (beyond it a periodic lag comes back towards 0).
+    let reach = cols.min(rows) / 2;
+    let mut by_radius = vec![(0.0f64, 0usize); reach + 1];
+    let mut lags: Vec<(usize, f64)> = Vec::new();
+    for oy in -(reach as i64)..=reach as i64 {
+        for ox in -(reach as i64)..=reach as i64 {
+            let r = ((ox * ox + oy * oy) as f64).sqrt().round() as usize;
+            if r > reach {
+                continue;
+            }
+            let v = rho(ox.rem_euclid(cols as i64) as usize, oy.rem_euclid(rows as i64) as usize);
+            by_radius[r].0 += v;
+            by_radius[r].1 += 1;
+            lags.push((r, v));
+        }
+    }
+    // The initial positive sequence: radii up to the first whose mean correlation is ≤ 0.
+    let first_zero = (1..=reach).find(|&r| by_radius[r].0 / by_radius[r].1.max(1) as f64 <= 0.0).unwrap_or(reach + 1);
+    let area: f64 = lags.iter().filter(|(r, _)| *r < first_zero).map(|(_, v)| v).sum();
+    n as f64 / area.max(1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::StdRng;
+    use rand::{RngExt, SeedableRng};
+
+    fn noise(cols: usize, rows: usize, seed: u64) -> Vec<[f32; 3]> {
+        let mut rng = StdRng::seed_from_u64(seed);
+        (0..cols * rows).map(|_| [0, 1, 2].map(|_| rng.random::<f32>() - 0.5)).collect()
+    }
+
+    #[test]
+    fn white_noise_is_nearly_independent_and_a_blurred_one_is_not() {
+        let (c, r) = (40, 40);
+        let white = noise(c, r, 1);
+        let n_white = effective_samples(&white, c, r);
+        assert!(n_white > 0.6 * (c * r) as f64, "white noise n_eff {n_white}");
+        // A 5×5 box average of the same noise: correlation area ≈ 25 blocks.
+        let blurred: Vec<[f32; 3]> = (0..c * r)
+            .map(|p| {
+                let (x, y) = (p % c, p / c);
+                let mut s = [0.0f32; 3];
+                for dy in 0..5 {
+                    for dx in 0..5 {
+                        let q = ((y + dy) % r) * c + (x + dx) % c;
+                        (0..3).for_each(|k| s[k] += white[q][k] / 25.0);
+                    }
+                }
+                s
+            })
+            .collect();
+        let n_blur = effective_samples(&blurred, c, r);
+        let ratio = (c * r) as f64 / n_blur;
+        assert!((12.0..40.0).contains(&ratio), "correlation area {ratio} for a 5×5 box blur");
+        assert_eq!(effective_samples(&vec![[0.0; 3]; c * r], c, r), (c * r) as f64);
+    }
+
+    #[test]
+    fn a_twill_one_cell_off_is_one_irregular_cell_and_the_twill_itself_none() {
+        let named = named_weaves(4, 4);
+        let twill = WeavePattern::parse("1100/0110/0011/1001").unwrap();
+        assert_eq!(irregular_cells(&twill, &named).0, 0);
+        // Shifted and the other direction are named too.
+        assert_eq!(irregular_cells(&WeavePattern::parse("0011/0110/1100/1001").unwrap(), &named).0, 0);
+        let off = twill.toggled(0, 2);
+        let (d, q) = irregular_cells(&off, &named);
+        assert_eq!((d, q), (1, Some(&twill)));
+        // No named weave on a 3×5 grid: no cell is irregular.
+        assert_eq!(irregular_cells(&WeavePattern::parse("11010/10101/01011").unwrap(), &named_weaves(3, 5)), (0, None));
+    }
+
+    #[test]
+    fn an_irregular_cell_must_pay_for_itself_in_loss() {
+        // 1 % less loss does not buy a cell when 40 samples are independent, 20 % does.
+        let n = 40.0;
+        assert!(bic(0.99, 1, n) > bic(1.0, 0, n));
+        assert!(bic(0.80, 1, n) < bic(1.0, 0, n));
+        // With thousands of independent samples (a clean render) 1 % does.
+        assert!(bic(0.99, 1, 4000.0) < bic(1.0, 0, 4000.0));
+        assert!(bic(0.0, 0, n).is_finite());
+    }
+}
