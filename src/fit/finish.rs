@@ -88,12 +88,13 @@ fn finish(
     let (_, mut loss, mut best_cloth) = chosen.unwrap_or_else(|| (f64::INFINITY, f32::INFINITY, best.clone()));
     clock.mark("rivals", ev, Some(&best_cloth));
     if st.cells {
+        let mut current = (loss, best_cloth);
         for _ in 0..TOGGLE_ROUNDS {
-            match toggle_contest(ev, &quick, &best_cloth, loss, lm_iters, &choice, stop) {
-                Some((l, c)) => (loss, best_cloth) = (l, c),
-                None => break,
+            if !toggle_contest(ev, &quick, &mut current, lm_iters, &choice, stop) {
+                break;
             }
         }
+        (loss, best_cloth) = current;
         clock.mark("toggles", ev, Some(&best_cloth));
     }
     (loss, best_cloth)
@@ -180,34 +181,40 @@ fn rivals(st: &Stage, quick: &Evaluator, best: &ClothParams, others: &[ClothPara
     finals
 }
 
-/// One contest of single-cell changes: every cell toggle of `cloth` is scored with its appearance
-/// held (a cheap trace on `quick`), then the [`TOGGLE_FINALISTS`] best get a Levenberg–Marquardt
-/// descent of the appearance on `ev` and compete with the cloth's own score (`choice` of its
-/// polished `loss`).
-/// With the appearance held, a wrong cell whose yarn colours are close (or that the appearance
-/// has adapted to) costs little to keep, so a greedy pass at fixed appearance can leave it.
-/// Returns the winning toggle, if one beats `loss`.
+/// One contest of single-cell changes of `current` (its polished loss and its cloth): every cell
+/// toggle is scored with the appearance held (a cheap trace on `quick`), then the
+/// [`TOGGLE_FINALISTS`] best get a Levenberg–Marquardt descent of the appearance on `ev`. With the
+/// appearance held, a wrong cell whose yarn colours are close (or that the appearance has adapted
+/// to) costs little to keep, so a greedy pass at fixed appearance can leave it. The incumbent gets
+/// the same descent first, so that a toggle is not preferred for its extra appearance convergence
+/// alone; the finalists then compete with it by the `choice` score. Returns whether a toggle won
+/// (then `current` holds it; otherwise the re-descended incumbent if that lowered its loss).
 fn toggle_contest(
     ev: &Evaluator,
     quick: &Evaluator,
-    cloth: &ClothParams,
-    loss: f32,
+    current: &mut (f32, ClothParams),
     lm_iters: usize,
     choice: &PatternChoice,
     stop: &AtomicBool,
-) -> Option<(f32, ClothParams)> {
+) -> bool {
+    let cloth = current.1.clone();
     let mut scored: Vec<(f32, ClothParams)> = Vec::new();
     for i in 0..cloth.pattern.n_e() {
         for j in 0..cloth.pattern.n_a() {
             if stop.load(Ordering::Relaxed) {
-                return None;
+                return false;
             }
-            let Some(mut cand) = toggled_cell(cloth, i, j) else { continue };
+            let Some(mut cand) = toggled_cell(&cloth, i, j) else { continue };
             scored.push((state_loss(quick, &mut cand), cand));
         }
     }
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let own = choice.score(loss, cloth);
+    let mut incumbent = cloth;
+    let l = refine::polish(ev, &mut incumbent, 0, lm_iters, stop);
+    if l < current.0 {
+        *current = (l, incumbent);
+    }
+    let own = choice.score(current.0, &current.1);
     let mut best: Option<(f64, f32, ClothParams)> = None;
     for (_, mut cand) in scored.into_iter().take(TOGGLE_FINALISTS) {
         let l = refine::polish(ev, &mut cand, 0, lm_iters, stop);
@@ -216,7 +223,13 @@ fn toggle_contest(
             best = Some((score, l, cand));
         }
     }
-    best.map(|(_, l, c)| (l, c))
+    match best {
+        Some((_, l, c)) => {
+            *current = (l, c);
+            true
+        }
+        None => false,
+    }
 }
 
 /// The winner's last polish (when `opts.fine_spp > 0`): appearance restarts, a polish to
