@@ -55,6 +55,14 @@ pub const SPOT_REACH: f32 = 0.35;
 /// bright minority, like back-lit holes, included) 0.75–2.2.
 pub const MAX_HOLE_REACH: f32 = 0.45;
 
+/// Ratio of the yarn centres' luminance to the crossings' below which a front-lit photo shows no
+/// gaps to see through, so the fit solves no backdrop for them (`CaptureEstimate::shows_gaps`).
+/// The forward model's own dense cloths (touching yarns, front light, dark behind) give 1.03–1.10
+/// for satins, whose crossings lie mostly inside floats, and more for twills and plains, whose
+/// crossings are shadowed; the other renderer's cloths with a background seen through their gaps
+/// (`../shared/data/mitsuba`, our own Mitsuba set) give 1.33 and more. 1.2 lies between the two.
+pub const SEE_THROUGH_RATIO: f32 = 1.2;
+
 /// How the photo was lit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -102,6 +110,16 @@ pub struct CaptureEstimate {
 }
 
 impl CaptureEstimate {
+    /// Whether the photo shows something behind the cloth through its gaps: always under a back
+    /// light; under a front light only when the crossings are darker than the yarn centres by
+    /// [`SEE_THROUGH_RATIO`]. Where it does not (a dense cloth whose crossings are as bright as its
+    /// yarns, filled with hair), a backdrop solved for the fit's gaps is a free colour that lets
+    /// thin yarns over a mean-coloured background pass for the cloth: the fit then renders the
+    /// gaps as the lights leave them and must close them with the yarns.
+    pub fn shows_gaps(&self) -> bool {
+        self.capture != Capture::Front || self.centre_luma >= SEE_THROUGH_RATIO * self.hole_luma
+    }
+
     /// One line for the log: the decision and its evidence.
     pub fn describe(&self) -> String {
         format!(
@@ -236,6 +254,24 @@ mod tests {
         assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
         assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), 3.0, "upper median, v[n / 2]");
         assert!(median(Vec::new()).is_nan());
+    }
+
+    #[test]
+    fn gaps_are_seen_through_under_a_back_light_or_when_the_crossings_are_dark() {
+        let est = |capture, hole_luma, centre_luma| CaptureEstimate {
+            capture,
+            hole_luma,
+            centre_luma,
+            crossings: 100,
+            bright_share: 0.3,
+            reach: 1.0,
+        };
+        // A hairy dense twill (crossings 0.39, centres 0.44) hides what is behind it.
+        assert!(!est(Capture::Front, 0.39, 0.44).shows_gaps());
+        // An open plain weave with dark holes, and any back-lit cloth, show it.
+        assert!(est(Capture::Front, 0.10, 0.52).shows_gaps());
+        assert!(est(Capture::Back, 0.9, 0.9).shows_gaps());
+        assert!(est(Capture::Both, 0.9, 0.5).shows_gaps());
     }
 
     #[test]

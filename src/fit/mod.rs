@@ -180,9 +180,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
             r.px_per_cell,
         );
     }
-    let ev0 = Evaluator::new(scene, target.image.clone(), r.loss_block)
-        .with_blur(target.blur_px)
-        .with_backdrop(target.prep.is_some());
+    let ev0 = Evaluator::new(scene, target.image.clone(), r.loss_block).with_blur(target.blur_px).with_backdrop(
+        target.prep.as_ref().is_some_and(|p| capture::estimate_capture(p).is_none_or(|c| c.shows_gaps())),
+    );
     let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
     stages.mark("prep", &ev0, None);
