@@ -2,8 +2,9 @@
 //! minimum-pattern crop) or take it as one repeat, settle the yarn grid, and resample the crop to
 //! the fit's pixels per cell.
 
+use super::capture::{MAX_HOLE_REACH, SPOT_REACH};
 use super::options::InputOptions;
-use super::target::{boundary_phase, cell_phase, detect_grid, hole_phase, resample, shift_periodic};
+use super::target::{boundary_phase, cell_phase, corner_reach, detect_grid, hole_phase, resample, shift_periodic};
 use crate::image_io::Image;
 use crate::pattern::MAX_SIDE;
 use anyhow::{bail, Context, Result};
@@ -116,15 +117,14 @@ const HOLE_MIN_CONCENTRATION: f32 = 0.5;
 /// instead (gaps brighter than the yarns, yarn families of very different brightness), and a crop
 /// half a cell off makes every pattern candidate wrong.
 ///
-/// The phase comes from the image's cues where they are trustworthy ([`cue_phase`]); whether the
-/// bright spots of a picture whose image cues do not settle it are holes lit from behind is the
-/// capture estimated from the prepared photo (`fit::capture`). The crop rectangle of the
+/// The phase comes from the image's cues where they are trustworthy ([`cue_phase`]); bright
+/// spots are not taken for holes where the capture estimated from the photo (`fit::capture`)
+/// says, clearly, that they are not ([`front_lit_for_sure`]). The crop rectangle of the
 /// preparation moves with the crop, so that the output frames the input as before. Returns the
 /// shift in target pixels (fit resolution).
 pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, i32) {
-    let back_lit =
-        t.prep.as_ref().and_then(super::capture::estimate_capture).map(|e| e.capture != super::capture::Capture::Front);
-    let (dx, dy) = cue_phase(&t.image, model, c, back_lit);
+    let use_holes = !t.prep.as_ref().and_then(super::capture::estimate_capture).is_some_and(|e| front_lit_for_sure(&e));
+    let (dx, dy) = cue_phase(&t.image, model, c, use_holes);
     shift_target(t, (dx, dy), c);
     (dx, dy)
 }
@@ -138,15 +138,18 @@ pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, 
 ///    renderer's image may lack: matched against them, the crops of the cross-renderer set moved
 ///    4–7 of 16 pixels off a boundary prep had found);
 /// 2. the back-lit holes ([`hole_phase`], concentration at least [`HOLE_MIN_CONCENTRATION`]),
-///    when the bright spots are holes at the cell corners rather than yarn crowns at the centres:
-///    on an axis whose edge cue is strong, the hole cue then lands within a quarter cell of it
-///    (crowns land half a cell away); with no such axis, `back_lit` (the capture estimated from
-///    the photo: a light behind the cloth) says so. A cloth with thin yarns and open holes gives
+///    when the bright spots are holes at the cell corners rather than yarn tops: placed there,
+///    they are compact spots (their brightness [`SPOT_REACH`] cells away along either axis at
+///    most [`MAX_HOLE_REACH`] of theirs: [`corner_reach`], the rule by which `fit::capture` tells
+///    holes from yarn tops on the whole photo, which cannot be used here since it reads the
+///    photo on preparation's lattice, the very phase in question), and on an axis whose edge cue
+///    is strong they land within a quarter cell of it. A cloth with thin yarns and open holes gives
 ///    a weak edge cue on at least one axis (the holes' edges, a quarter cell or more from the
 ///    corners, outweigh the silhouettes), and the model fold of step 3 then put the crops of the
 ///    own multi-repeat renders a quarter cell off, every pattern candidate with them;
+///    `use_holes = false` turns this step off;
 /// 3. the model's fold ([`cell_phase`] against `model`, a render of any cloth on the grid).
-pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, back_lit: Option<bool>) -> (i32, i32) {
+pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool) -> (i32, i32) {
     let ((bx, by), (sx, sy)) = boundary_phase(image, c);
     let strong = (sx >= BOUNDARY_MIN_STRENGTH, sy >= BOUNDARY_MIN_STRENGTH);
     if strong.0 && strong.1 {
@@ -157,15 +160,11 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, back_lit: Option<b
         let d = (a - b).rem_euclid(ci);
         d.min(ci - d)
     };
-    // Holes agree with the edges on every axis the edges settle; with no such axis the light
-    // decides.
-    let holes = hole_phase(image, c).filter(|((hx, hy), _)| {
-        let agree = [(strong.0, *hx, bx), (strong.1, *hy, by)];
-        if strong.0 || strong.1 {
-            agree.iter().filter(|a| a.0).all(|&(_, h, b)| 4 * apart(h, b) <= ci)
-        } else {
-            back_lit == Some(true)
-        }
+    // Compact spots at the corners, agreeing with the edges on every axis the edges settle.
+    let holes = hole_phase(image, c).filter(|_| use_holes).filter(|(h, _)| {
+        let agree = [(strong.0, h.0, bx), (strong.1, h.1, by)];
+        agree.iter().filter(|a| a.0).all(|&(_, h, b)| 4 * apart(h, b) <= ci)
+            && corner_reach(image, c, *h, SPOT_REACH) <= MAX_HOLE_REACH
     });
     let model_fold = || cell_phase(image, model, c).0;
     let mut fold: Option<(i32, i32)> = None;
@@ -187,6 +186,20 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, back_lit: Option<b
         }
     };
     (axis(0), axis(1))
+}
+
+/// Whether the capture estimated from the whole photo says, beyond doubt, that its bright spots
+/// are no holes lit from behind: not back-lit (`fit::capture`'s decision), although the two
+/// lattices it compares (preparation's yarn crossings and cell centres) differ clearly, by at
+/// least `fit::capture`'s back-lit ratio either way. Where they do not, preparation's lattice
+/// sits between the holes and the yarn centres (a crop a quarter cell off, the case
+/// [`cue_phase`] mends) and mixes both, and the decision says nothing about the spots. A dark
+/// front-lit photo whose yarn tops shine in small spots (the FabricNET photo W052: crossings
+/// 0.002 against centres 0.028, brightness reach 0.53) is the case this keeps from being framed
+/// on its yarn tops.
+fn front_lit_for_sure(e: &super::capture::CaptureEstimate) -> bool {
+    let (hi, lo) = (e.hole_luma.max(e.centre_luma), e.hole_luma.min(e.centre_luma));
+    e.capture == super::capture::Capture::Front && hi >= super::capture::BACKLIT_RATIO * lo.max(1e-6)
 }
 
 /// Shift the target cyclically by `(dx, dy)` pixels at `c` pixels per cell (see
@@ -437,16 +450,37 @@ mod tests {
             if off(sy + fold.1).abs() >= 2 {
                 fold_missed += 1;
             }
-            // The holes put it back, told from crowns by their agreement with the edges on x,
-            // whatever the capture says.
-            for back_lit in [Some(true), None, Some(false)] {
-                let (dx, dy) = cue_phase(&img, &model, c, back_lit);
-                assert!(
-                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
-                    "framed ({sx}, {sy}) off, shifted by ({dx}, {dy}), capture {back_lit:?}"
-                );
-            }
+            // The holes put it back: compact spots, agreeing with the edges on x.
+            let (dx, dy) = cue_phase(&img, &model, c, true);
+            assert!(
+                off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                "framed ({sx}, {sy}) off, shifted by ({dx}, {dy})"
+            );
+            // Without the holes, the fold decides y as before.
+            assert_eq!(cue_phase(&img, &model, c, false).1, fold.1);
         }
         assert!(fold_missed >= 2, "the model fold missed only {fold_missed} of 4");
+    }
+
+    #[test]
+    fn only_a_clear_front_lit_capture_vetoes_the_holes() {
+        use crate::fit::capture::{Capture, CaptureEstimate};
+        let e = |capture, hole_luma, centre_luma| CaptureEstimate {
+            capture,
+            hole_luma,
+            centre_luma,
+            crossings: 100,
+            bright_share: 0.1,
+            reach: 0.5,
+        };
+        // Dark crossings far below the yarn centres: a front-lit photo.
+        assert!(front_lit_for_sure(&e(Capture::Front, 0.002, 0.028)));
+        // Lattices within the back-lit ratio of each other: preparation's lattice mixes holes
+        // and yarns (a crop a quarter cell off), the decision is no evidence.
+        assert!(!front_lit_for_sure(&e(Capture::Front, 0.027, 0.057)));
+        assert!(!front_lit_for_sure(&e(Capture::Front, 0.042, 0.052)));
+        // Back-lit photos keep their holes.
+        assert!(!front_lit_for_sure(&e(Capture::Both, 1.37, 0.24)));
+        assert!(!front_lit_for_sure(&e(Capture::Back, 0.86, 0.03)));
     }
 }

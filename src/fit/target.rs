@@ -188,8 +188,8 @@ pub fn boundary_phase(img: &Image, c: u32) -> ((i32, i32), (f32, f32)) {
 /// Sub-cell phase of a one-repeat image of `c`-pixel cells from its back-lit holes: the cyclic
 /// shift `(dx, dy)`, each in `(−c/2, c/2]`, for which [`shift_periodic`]`(img, dx, dy)` starts on
 /// a yarn boundary, and the concentration of the cue along each axis (see below). Only for a
-/// picture whose holes glow with a light behind the cloth (`fit::capture`'s `back` or `both`):
-/// lit from the front, the bright spots are the yarns' crowns at the cell centres instead.
+/// picture whose holes glow with a light behind the cloth: lit from the front, the bright spots
+/// are the yarns' tops instead, which [`corner_reach`] tells apart.
 ///
 /// Wherever four yarns meet, whichever lies on top, a hole opens at the cell corner, centred on
 /// the crossing of a weft boundary and a warp boundary, whatever the yarns' widths: a thin weft
@@ -241,6 +241,40 @@ pub fn hole_phase(img: &Image, c: u32) -> Option<((i32, i32), (f32, f32))> {
     };
     let ((sx, rx), (sy, ry)) = (axis(&px)?, axis(&py)?);
     Some(((sx, sy), (rx, ry)))
+}
+
+/// How far the brightness of the cell corners reaches, as a share of theirs, in a one-repeat
+/// image of `c`-pixel cells whose cell boundaries start at `(dx, dy)` (the shift [`hole_phase`]
+/// returns): at every corner, the linear luminance `reach` cells away along x and along y (each
+/// the mean of both sides; the brighter direction) against the corner's own (the 2×2 pixels
+/// around it); the median over the corners. `fit::capture` tells holes from yarn tops the same
+/// way on the whole photo: a hole is a small spot closed on every side by yarns, while a bright
+/// yarn top stays bright along its yarn. `NaN` when every corner is black.
+pub fn corner_reach(img: &Image, c: u32, (dx, dy): (i32, i32), reach: f32) -> f32 {
+    let ci = c.max(1) as i32;
+    let (w, h) = (img.width as i32, img.height as i32);
+    let lum = |x: i32, y: i32| {
+        let p = img.get(x.rem_euclid(w) as u32, y.rem_euclid(h) as u32);
+        0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]
+    };
+    let d = (reach * ci as f32).round() as i32;
+    let mut shares = Vec::new();
+    // The corner lies between pixels `x0 − 1` and `x0` (and `y0 − 1`, `y0`).
+    for y0 in (0..(h / ci).max(1)).map(|k| dy + k * ci) {
+        for x0 in (0..(w / ci).max(1)).map(|k| dx + k * ci) {
+            let spot = (lum(x0 - 1, y0 - 1) + lum(x0, y0 - 1) + lum(x0 - 1, y0) + lum(x0, y0)) / 4.0;
+            let along_x = [y0 - 1, y0].iter().map(|&y| lum(x0 - 1 - d, y) + lum(x0 + d, y)).sum::<f32>() / 4.0;
+            let along_y = [x0 - 1, x0].iter().map(|&x| lum(x, y0 - 1 - d) + lum(x, y0 + d)).sum::<f32>() / 4.0;
+            if spot > 0.0 {
+                shares.push(along_x.max(along_y) / spot);
+            }
+        }
+    }
+    if shares.is_empty() {
+        return f32::NAN;
+    }
+    shares.sort_by(f32::total_cmp);
+    shares[shares.len() / 2]
 }
 
 /// Least geometric mean of the two comb fractions of a yarn count (see [`yarn_count`]).
@@ -626,6 +660,42 @@ mod tests {
         let (_, (rx, _)) = hole_phase(&stripes, 16).expect("bright pixels");
         assert!(rx < 0.1, "{rx}");
         assert!(hole_phase(&Image::filled(32, 32, [0.4; 3]), 16).is_none());
+    }
+
+    #[test]
+    fn holes_are_compact_spots_and_yarn_tops_reach_along_their_yarns() {
+        let c = 16;
+        let holes = holes_at_corners(3, c, 2.5, 5.0);
+        let r = corner_reach(&holes, c, (0, 0), 0.35);
+        assert!(r < 0.15, "holes {r}");
+        // Front-lit yarn tops: a bright bar along each cell's top yarn (weft where i + j is even,
+        // warp elsewhere), 3 px wide and the cell long, on dark gaps. The brightest spots are the cell centres; a
+        // frame that puts them on the corners (half a cell off) finds them reaching along the
+        // yarns.
+        let side = 3 * c;
+        let tops = Image::new(
+            side,
+            side,
+            (0..side * side)
+                .map(|k| {
+                    let (x, y) = (k % side, k / side);
+                    let (i, j) = (y / c, x / c);
+                    let (u, v) = ((x % c) as i32 - 8, (y % c) as i32 - 8);
+                    let on = if (i + j) % 2 == 0 { v.abs() <= 1 } else { u.abs() <= 1 };
+                    if on {
+                        [0.8; 3]
+                    } else {
+                        [0.02; 3]
+                    }
+                })
+                .collect(),
+        );
+        let ((dx, dy), _) = hole_phase(&tops, c).expect("bright pixels");
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        assert!(off(dx - 8).abs() <= 1 && off(dy - 8).abs() <= 1, "spots at ({dx}, {dy})");
+        let r = corner_reach(&tops, c, (dx, dy), 0.35);
+        assert!(r > 0.45, "tops {r}");
+        assert!(corner_reach(&Image::filled(32, 32, [0.0; 3]), 16, (0, 0), 0.35).is_nan());
     }
 
     #[test]
