@@ -2,8 +2,9 @@
 //! minimum-pattern crop) or take it as one repeat, settle the yarn grid, and resample the crop to
 //! the fit's pixels per cell.
 
+use super::capture::{MAX_HOLE_REACH, SPOT_REACH};
 use super::options::InputOptions;
-use super::target::{boundary_phase, cell_phase, detect_grid, resample, shift_periodic};
+use super::target::{boundary_phase, cell_phase, corner_reach, detect_grid, hole_phase, resample, shift_periodic};
 use crate::image_io::Image;
 use crate::pattern::MAX_SIDE;
 use anyhow::{bail, Context, Result};
@@ -103,6 +104,12 @@ pub(crate) fn prepare_target(
 /// axis the cue put right had 0.46 or more, every axis it put wrong 0.35 or less.
 const BOUNDARY_MIN_STRENGTH: f32 = 0.4;
 
+/// Least concentration (mean resultant length, see [`hole_phase`]) of the back-lit holes' cue
+/// along an axis for it to place that axis: the bright pixels must gather in a band of at most
+/// about 60 % of the cell around their centre (a uniform band of width `f·c` has resultant
+/// `sin(πf)/(πf)`, 0.50 at `f = 0.6`); beyond that they are no lattice of holes.
+const HOLE_MIN_CONCENTRATION: f32 = 0.5;
+
 /// Put the target's cell boundaries on the yarn boundaries: estimate the crop's sub-cell phase
 /// and shift the crop cyclically by it (the crop is one repeat of a periodic image, so it may
 /// start anywhere), then resample the target again. Preparation places its crop on the yarn
@@ -110,25 +117,89 @@ const BOUNDARY_MIN_STRENGTH: f32 = 0.4;
 /// instead (gaps brighter than the yarns, yarn families of very different brightness), and a crop
 /// half a cell off makes every pattern candidate wrong.
 ///
-/// Each axis's phase comes from the image alone where its cue is strong ([`boundary_phase`]:
-/// the edges folded into one cell peak on the yarn boundaries), so that it cannot depend on the
-/// fit's starting pattern nor on the fine detail of the model's renders (ply and fibre stripes
-/// that a photo or another renderer's image may lack: matched against them, the crops of the
-/// cross-renderer set moved 4–7 of 16 pixels off a boundary prep had found). Where the cue is
-/// weak the model decides: `model` is a render of any cloth on the target's grid at `c` pixels per
-/// cell, matched by [`cell_phase`]. The crop rectangle of the preparation moves with it, so that
-/// the output frames the input as before. Returns the shift in target pixels (fit resolution).
+/// The phase comes from the image's cues where they are trustworthy ([`cue_phase`]); bright
+/// spots are not taken for holes where the capture estimated from the photo (`fit::capture`)
+/// says, clearly, that they are not ([`front_lit_for_sure`]). The crop rectangle of the
+/// preparation moves with the crop, so that the output frames the input as before. Returns the
+/// shift in target pixels (fit resolution).
 pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, i32) {
-    let ((bx, by), (sx, sy)) = boundary_phase(&t.image, c);
-    let (mx, my) = if sx < BOUNDARY_MIN_STRENGTH || sy < BOUNDARY_MIN_STRENGTH {
-        cell_phase(&t.image, model, c).0
-    } else {
-        (bx, by)
-    };
-    let dx = if sx >= BOUNDARY_MIN_STRENGTH { bx } else { mx };
-    let dy = if sy >= BOUNDARY_MIN_STRENGTH { by } else { my };
+    let use_holes = !t.prep.as_ref().and_then(super::capture::estimate_capture).is_some_and(|e| front_lit_for_sure(&e));
+    let (dx, dy) = cue_phase(&t.image, model, c, use_holes);
     shift_target(t, (dx, dy), c);
     (dx, dy)
+}
+
+/// The sub-cell phase `(dx, dy)` of a one-repeat `image` of `c`-pixel cells (the shift that puts
+/// its cell boundaries on the yarn boundaries), axis by axis, from the first cue that can be
+/// trusted:
+/// 1. the edges ([`boundary_phase`]) where their cue is strong (at least
+///    [`BOUNDARY_MIN_STRENGTH`]), so that the phase cannot depend on the fit's starting pattern
+///    nor on the fine detail of the model's renders (ply and fibre stripes that a photo or another
+///    renderer's image may lack: matched against them, the crops of the cross-renderer set moved
+///    4–7 of 16 pixels off a boundary prep had found);
+/// 2. the back-lit holes ([`hole_phase`], concentration at least [`HOLE_MIN_CONCENTRATION`]),
+///    when the bright spots are holes at the cell corners rather than yarn tops: placed there,
+///    they are compact spots (their brightness [`SPOT_REACH`] cells away along either axis at
+///    most [`MAX_HOLE_REACH`] of theirs: [`corner_reach`], the rule by which `fit::capture` tells
+///    holes from yarn tops on the whole photo, which cannot be used here since it reads the
+///    photo on preparation's lattice, the very phase in question), and on an axis whose edge cue
+///    is strong they land within a quarter cell of it. A cloth with thin yarns and open holes gives
+///    a weak edge cue on at least one axis (the holes' edges, a quarter cell or more from the
+///    corners, outweigh the silhouettes), and the model fold of step 3 then put the crops of the
+///    own multi-repeat renders a quarter cell off, every pattern candidate with them;
+///    `use_holes = false` turns this step off;
+/// 3. the model's fold ([`cell_phase`] against `model`, a render of any cloth on the grid).
+pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool) -> (i32, i32) {
+    let ((bx, by), (sx, sy)) = boundary_phase(image, c);
+    let strong = (sx >= BOUNDARY_MIN_STRENGTH, sy >= BOUNDARY_MIN_STRENGTH);
+    if strong.0 && strong.1 {
+        return (bx, by);
+    }
+    let ci = c.max(1) as i32;
+    let apart = |a: i32, b: i32| {
+        let d = (a - b).rem_euclid(ci);
+        d.min(ci - d)
+    };
+    // Compact spots at the corners, agreeing with the edges on every axis the edges settle.
+    let holes = hole_phase(image, c).filter(|_| use_holes).filter(|(h, _)| {
+        let agree = [(strong.0, h.0, bx), (strong.1, h.1, by)];
+        agree.iter().filter(|a| a.0).all(|&(_, h, b)| 4 * apart(h, b) <= ci)
+            && corner_reach(image, c, *h, SPOT_REACH) <= MAX_HOLE_REACH
+    });
+    let model_fold = || cell_phase(image, model, c).0;
+    let mut fold: Option<(i32, i32)> = None;
+    let mut axis = |k: usize| -> i32 {
+        if (k == 0 && strong.0) || (k == 1 && strong.1) {
+            return if k == 0 { bx } else { by };
+        }
+        if let Some(((hx, hy), (rx, ry))) = holes {
+            let (h, r) = if k == 0 { (hx, rx) } else { (hy, ry) };
+            if r >= HOLE_MIN_CONCENTRATION {
+                return h;
+            }
+        }
+        let m = *fold.get_or_insert_with(model_fold);
+        if k == 0 {
+            m.0
+        } else {
+            m.1
+        }
+    };
+    (axis(0), axis(1))
+}
+
+/// Whether the capture estimated from the whole photo says, beyond doubt, that its bright spots
+/// are no holes lit from behind: not back-lit (`fit::capture`'s decision), although the two
+/// lattices it compares (preparation's yarn crossings and cell centres) differ clearly, by at
+/// least `fit::capture`'s back-lit ratio either way. Where they do not, preparation's lattice
+/// sits between the holes and the yarn centres (a crop a quarter cell off, the case
+/// [`cue_phase`] mends) and mixes both, and the decision says nothing about the spots. A dark
+/// front-lit photo whose yarn tops shine in small spots (the FabricNET photo W052: crossings
+/// 0.002 against centres 0.028, brightness reach 0.53) is the case this keeps from being framed
+/// on its yarn tops.
+fn front_lit_for_sure(e: &super::capture::CaptureEstimate) -> bool {
+    let (hi, lo) = (e.hole_luma.max(e.centre_luma), e.hole_luma.min(e.centre_luma));
+    e.capture == super::capture::Capture::Front && hi >= super::capture::BACKLIT_RATIO * lo.max(1e-6)
 }
 
 /// Shift the target cyclically by `(dx, dy)` pixels at `c` pixels per cell (see
@@ -343,5 +414,73 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A back-lit twill (the default rig, whose back light shines through the holes) of thin wefts
+    /// and wider warps, so that the holes are taller than wide, as in the own multi-repeat renders
+    /// whose crops went a quarter cell off; `c` px per cell.
+    fn open_backlit_twill(c: u32) -> Image {
+        use crate::fit::demo::demo_cloth;
+        use crate::fit::target::fit_scene;
+        let mut cloth = demo_cloth();
+        cloth.pattern = WeavePattern::parse("110/011/101").unwrap();
+        (cloth.r_e, cloth.r_a, cloth.n_p) = (2.7, 3.8, 3);
+        let ro = crate::render::RenderOptions { threads: Some(1), ..Default::default() };
+        crate::render::render(&cloth, &fit_scene(3, 3, c, 4, 2, &crate::scene::LightRig::default_rig()), &ro)
+    }
+
+    #[test]
+    fn an_open_back_lit_weave_is_put_on_its_boundaries_by_its_holes() {
+        use crate::fit::target::{fit_scene, shift_periodic};
+        let c = 16;
+        let sharp = open_backlit_twill(c);
+        let ro = crate::render::RenderOptions { threads: Some(1), ..Default::default() };
+        let start = crate::fit::preestimate::default_cloth(crate::fit::default_twill(3, 3));
+        let model =
+            crate::render::render(&start, &fit_scene(3, 3, c, 8, 3, &crate::scene::LightRig::default_rig()), &ro);
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        let mut fold_missed = 0;
+        for (sx, sy) in [(0, 5), (4, -3), (-6, 6), (8, 8)] {
+            let img = shift_periodic(&sharp, sx, sy);
+            // The edges settle x but not y (the holes' edges outweigh the thin wefts' silhouettes).
+            let (_, (ex, ey)) = boundary_phase(&img, c);
+            assert!(ex >= BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
+            // The model's fold, which decided y before, misses the boundary.
+            let (fold, _) = cell_phase(&img, &model, c);
+            if off(sy + fold.1).abs() >= 2 {
+                fold_missed += 1;
+            }
+            // The holes put it back: compact spots, agreeing with the edges on x.
+            let (dx, dy) = cue_phase(&img, &model, c, true);
+            assert!(
+                off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                "framed ({sx}, {sy}) off, shifted by ({dx}, {dy})"
+            );
+            // Without the holes, the fold decides y as before.
+            assert_eq!(cue_phase(&img, &model, c, false).1, fold.1);
+        }
+        assert!(fold_missed >= 2, "the model fold missed only {fold_missed} of 4");
+    }
+
+    #[test]
+    fn only_a_clear_front_lit_capture_vetoes_the_holes() {
+        use crate::fit::capture::{Capture, CaptureEstimate};
+        let e = |capture, hole_luma, centre_luma| CaptureEstimate {
+            capture,
+            hole_luma,
+            centre_luma,
+            crossings: 100,
+            bright_share: 0.1,
+            reach: 0.5,
+        };
+        // Dark crossings far below the yarn centres: a front-lit photo.
+        assert!(front_lit_for_sure(&e(Capture::Front, 0.002, 0.028)));
+        // Lattices within the back-lit ratio of each other: preparation's lattice mixes holes
+        // and yarns (a crop a quarter cell off), the decision is no evidence.
+        assert!(!front_lit_for_sure(&e(Capture::Front, 0.027, 0.057)));
+        assert!(!front_lit_for_sure(&e(Capture::Front, 0.042, 0.052)));
+        // Back-lit photos keep their holes.
+        assert!(!front_lit_for_sure(&e(Capture::Both, 1.37, 0.24)));
+        assert!(!front_lit_for_sure(&e(Capture::Back, 0.86, 0.03)));
     }
 }

@@ -185,6 +185,98 @@ pub fn boundary_phase(img: &Image, c: u32) -> ((i32, i32), (f32, f32)) {
     ((sx, sy), (ax, ay))
 }
 
+/// Sub-cell phase of a one-repeat image of `c`-pixel cells from its back-lit holes: the cyclic
+/// shift `(dx, dy)`, each in `(−c/2, c/2]`, for which [`shift_periodic`]`(img, dx, dy)` starts on
+/// a yarn boundary, and the concentration of the cue along each axis (see below). Only for a
+/// picture whose holes glow with a light behind the cloth: lit from the front, the bright spots
+/// are the yarns' tops instead, which [`corner_reach`] tells apart.
+///
+/// Wherever four yarns meet, whichever lies on top, a hole opens at the cell corner, centred on
+/// the crossing of a weft boundary and a warp boundary, whatever the yarns' widths: a thin weft
+/// leaves a tall hole, a wide warp a narrow one, but both are symmetric about the corner. The
+/// pixels brighter than the middle of the luminance range (linear; between its 2nd and 98th
+/// percentiles, as `fit::capture` counts bright pixels) are weighted by how far they rise above
+/// it, `w = max(0, L − mid)`, and folded into one cell along each axis; the circular mean of that
+/// profile (the phase of its first Fourier harmonic, as in [`boundary_phase`]) is the holes'
+/// centre, i.e. the boundary. The concentration is the mean resultant length `|Σ w·e^{iθ}| / Σ w`
+/// (1 when every hole pixel sits on one line, about 0 when the bright pixels spread over the
+/// whole cell). The edge cue ([`boundary_phase`]) fails on exactly these pictures: the holes'
+/// edges, a quarter of a cell or more from the corner on each side, outweigh the yarns'
+/// silhouettes, and its fundamental loses its peak. `None` when the image has no bright pixel.
+pub fn hole_phase(img: &Image, c: u32) -> Option<((i32, i32), (f32, f32))> {
+    let lum: Vec<f32> = img.data.iter().map(|p| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]).collect();
+    let mut sorted = lum.clone();
+    sorted.sort_by(f32::total_cmp);
+    if sorted.is_empty() {
+        return None;
+    }
+    let pct = |q: f32| sorted[((sorted.len() - 1) as f32 * q).round() as usize];
+    let mid = 0.5 * (pct(0.02) + pct(0.98));
+    let ci = c.max(1) as usize;
+    let (mut px, mut py) = (vec![0.0f64; ci], vec![0.0f64; ci]);
+    let w = img.width as usize;
+    for (k, &l) in lum.iter().enumerate() {
+        let v = (l - mid).max(0.0) as f64;
+        px[(k % w) % ci] += v;
+        py[(k / w) % ci] += v;
+    }
+    let axis = |p: &[f64]| -> Option<(i32, f32)> {
+        let n = p.len() as f64;
+        let total: f64 = p.iter().sum();
+        if total <= 0.0 {
+            return None;
+        }
+        let (mut re, mut im) = (0.0f64, 0.0f64);
+        for (u, v) in p.iter().enumerate() {
+            let a = std::f64::consts::TAU * u as f64 / n;
+            re += v * a.cos();
+            im += v * a.sin();
+        }
+        // Pixel `u` is centred at `u`: a hole centred between pixels `k − 1` and `k` has its mean
+        // at `k − 0.5`, and the shift that starts the image there is `k`.
+        let centre = im.atan2(re) / std::f64::consts::TAU * n;
+        let s = ((centre + 0.5).round() as i32).rem_euclid(ci as i32);
+        let s = if s > ci as i32 / 2 { s - ci as i32 } else { s };
+        Some((s, ((re * re + im * im).sqrt() / total) as f32))
+    };
+    let ((sx, rx), (sy, ry)) = (axis(&px)?, axis(&py)?);
+    Some(((sx, sy), (rx, ry)))
+}
+
+/// How far the brightness of the cell corners reaches, as a share of theirs, in a one-repeat
+/// image of `c`-pixel cells whose cell boundaries start at `(dx, dy)` (the shift [`hole_phase`]
+/// returns): at every corner, the linear luminance `reach` cells away along x and along y (each
+/// the mean of both sides; the brighter direction) against the corner's own (the 2×2 pixels
+/// around it); the median over the corners. `fit::capture` tells holes from yarn tops the same
+/// way on the whole photo: a hole is a small spot closed on every side by yarns, while a bright
+/// yarn top stays bright along its yarn. `NaN` when every corner is black.
+pub fn corner_reach(img: &Image, c: u32, (dx, dy): (i32, i32), reach: f32) -> f32 {
+    let ci = c.max(1) as i32;
+    let (w, h) = (img.width as i32, img.height as i32);
+    let lum = |x: i32, y: i32| {
+        let p = img.get(x.rem_euclid(w) as u32, y.rem_euclid(h) as u32);
+        0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]
+    };
+    let d = (reach * ci as f32).round() as i32;
+    let mut shares = Vec::new();
+    // The corner lies between pixels `x0 − 1` and `x0` (and `y0 − 1`, `y0`).
+    for y0 in (0..(h / ci).max(1)).map(|k| dy + k * ci) {
+        for x0 in (0..(w / ci).max(1)).map(|k| dx + k * ci) {
+            let spot = (lum(x0 - 1, y0 - 1) + lum(x0, y0 - 1) + lum(x0 - 1, y0) + lum(x0, y0)) / 4.0;
+            let along_x = [y0 - 1, y0].iter().map(|&y| lum(x0 - 1 - d, y) + lum(x0 + d, y)).sum::<f32>() / 4.0;
+            let along_y = [x0 - 1, x0].iter().map(|&x| lum(x, y0 - 1 - d) + lum(x, y0 + d)).sum::<f32>() / 4.0;
+            if spot > 0.0 {
+                shares.push(along_x.max(along_y) / spot);
+            }
+        }
+    }
+    if shares.is_empty() {
+        return f32::NAN;
+    }
+    shares.sort_by(f32::total_cmp);
+    shares[shares.len() / 2]
+}
+
 /// Least geometric mean of the two comb fractions of a yarn count (see [`yarn_count`]).
 const COMB_MIN: f32 = 0.45;
 
@@ -529,6 +621,81 @@ mod tests {
         assert_eq!(idx.len(), 5);
         assert!(idx.iter().all(|&i| (20..25).contains(&i)));
         assert!(mean_at(&img, &idx).iter().all(|v| (v - 0.8).abs() < 1e-5));
+    }
+
+    /// A back-lit one-repeat image of `n × n` cells of `c` px: dark yarns, and at every cell corner
+    /// a white hole, an ellipse of half-axes `(ax, ay)` px centred on the corner.
+    fn holes_at_corners(n: u32, c: u32, ax: f32, ay: f32) -> Image {
+        let side = n * c;
+        let data = (0..side * side)
+            .map(|k| {
+                let (x, y) = ((k % side) as f32 + 0.5, (k / side) as f32 + 0.5);
+                let (cx, cy) = ((x / c as f32).round() * c as f32, (y / c as f32).round() * c as f32);
+                let inside = ((x - cx) / ax).powi(2) + ((y - cy) / ay).powi(2) <= 1.0;
+                if inside {
+                    [1.0; 3]
+                } else {
+                    [0.06, 0.04, 0.08]
+                }
+            })
+            .collect();
+        Image::new(side, side, data)
+    }
+
+    #[test]
+    fn back_lit_holes_mark_the_boundaries_whatever_their_shape() {
+        let c = 16;
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        // Tall holes (thin wefts, wide warps) and round ones.
+        for (ax, ay) in [(2.5, 5.0), (3.5, 3.5)] {
+            let img = holes_at_corners(3, c, ax, ay);
+            for (sx, sy) in [(0, 0), (0, 5), (4, -3), (-6, 7), (8, 8)] {
+                let ((dx, dy), (rx, ry)) = hole_phase(&shift_periodic(&img, sx, sy), c).expect("holes");
+                assert!(off(sx + dx) == 0 && off(sy + dy) == 0, "({sx}, {sy}) shifted by ({dx}, {dy})");
+                assert!(rx > 0.8 && ry > 0.5, "concentration {rx} {ry}");
+            }
+        }
+        // Spread bright pixels (every other column lit) are no lattice of holes.
+        let stripes = Image::new(32, 32, (0..32 * 32).map(|k| if k % 2 == 0 { [1.0; 3] } else { [0.1; 3] }).collect());
+        let (_, (rx, _)) = hole_phase(&stripes, 16).expect("bright pixels");
+        assert!(rx < 0.1, "{rx}");
+        assert!(hole_phase(&Image::filled(32, 32, [0.4; 3]), 16).is_none());
+    }
+
+    #[test]
+    fn holes_are_compact_spots_and_yarn_tops_reach_along_their_yarns() {
+        let c = 16;
+        let holes = holes_at_corners(3, c, 2.5, 5.0);
+        let r = corner_reach(&holes, c, (0, 0), 0.35);
+        assert!(r < 0.15, "holes {r}");
+        // Front-lit yarn tops: a bright bar along each cell's top yarn (weft where i + j is even,
+        // warp elsewhere), 3 px wide and the cell long, on dark gaps. The brightest spots are the cell centres; a
+        // frame that puts them on the corners (half a cell off) finds them reaching along the
+        // yarns.
+        let side = 3 * c;
+        let tops = Image::new(
+            side,
+            side,
+            (0..side * side)
+                .map(|k| {
+                    let (x, y) = (k % side, k / side);
+                    let (i, j) = (y / c, x / c);
+                    let (u, v) = ((x % c) as i32 - 8, (y % c) as i32 - 8);
+                    let on = if (i + j) % 2 == 0 { v.abs() <= 1 } else { u.abs() <= 1 };
+                    if on {
+                        [0.8; 3]
+                    } else {
+                        [0.02; 3]
+                    }
+                })
+                .collect(),
+        );
+        let ((dx, dy), _) = hole_phase(&tops, c).expect("bright pixels");
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        assert!(off(dx - 8).abs() <= 1 && off(dy - 8).abs() <= 1, "spots at ({dx}, {dy})");
+        let r = corner_reach(&tops, c, (dx, dy), 0.35);
+        assert!(r > 0.45, "tops {r}");
+        assert!(corner_reach(&Image::filled(32, 32, [0.0; 3]), 16, (0, 0), 0.35).is_nan());
     }
 
     #[test]
