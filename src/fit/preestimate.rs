@@ -463,7 +463,7 @@ mod tests {
         // A 3 × 3 twill (weft over on the diagonal cells) whose weft is red and warp blue, 4 px
         // per cell; the cell centres show the yarn on top. The network's logits get one cell
         // wrong with a weak logit: pooling by colour puts it right.
-        let truth = |i: usize, j: usize| (i + j) % 3 == 0;
+        let truth = |i: usize, j: usize| (i + j).is_multiple_of(3);
         let (n, c) = (3usize, 4usize);
         let target = |red: [f32; 3], blue: [f32; 3]| {
             let data = (0..n * c * n * c)
