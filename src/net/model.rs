@@ -425,7 +425,10 @@ mod tests {
         let mut s = spec();
         (s.cell_convs, s.cell_dilations, s.cell_residual) = (vec![8, 8], vec![1, 2], true);
         let (vm, net) = build(&s, 5)?;
-        let x = Tensor::randn(0f32, 1.0, (2, 4, 16, 16), &Device::Cpu)?;
+        // Seeded input (candle's `randn` draws from the thread's RNG: a different batch each run).
+        let mut rng = StdRng::seed_from_u64(9);
+        let xs: Vec<f32> = (0..2 * 4 * 16 * 16).map(|_| rng.random_range(-1.5f32..1.5)).collect();
+        let x = Tensor::from_vec(xs, (2, 4, 16, 16), &Device::Cpu)?;
         let cells =
             Tensor::from_vec((0..32).map(|i| (i % 3 == 0) as u8 as f32).collect::<Vec<_>>(), (2, 4, 4), &Device::Cpu)?;
         let t = Tensor::new(&[[0.2f32, 0.7], [0.6, 0.1]], &Device::Cpu)?;
