@@ -167,6 +167,16 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
         Ok(p) => println!("as a weave: {p} ({}×{} minimum repeat)", p.n_e(), p.n_a()),
         Err(e) => println!("as a weave: none ({e})"),
     }
+    // What the fit starts from when the two yarn families differ in colour
+    // (`fit::preestimate::network_reading`).
+    match woven::net::pool_by_colour(&v, &target, n_e, n_a) {
+        Some(pooled) => {
+            let rows: Vec<String> =
+                pooled.cells().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
+            println!("pooled by colour (two separate colour groups): {}", rows.join("/"));
+        }
+        None => println!("pooled by colour: not applied (no two clearly separate colour groups)"),
+    }
     print_outputs(&v.outputs);
     Ok(())
 }
