@@ -106,6 +106,12 @@ pub struct TrainRecipe {
     /// Channels of the convolutions at cell resolution.
     #[serde(default)]
     pub cell_convs: Option<Vec<usize>>,
+    /// Dilation of each convolution at cell resolution (default: all 1).
+    #[serde(default)]
+    pub cell_dilations: Option<Vec<usize>>,
+    /// Residual connections around the convolutions at cell resolution.
+    #[serde(default)]
+    pub cell_residual: Option<bool>,
     /// Convolutions per pooled block.
     #[serde(default)]
     pub convs_per_block: Option<usize>,
@@ -200,6 +206,12 @@ pub fn train_model(opts: &TrainOptions, progress: &dyn Progress) -> Result<Train
     }
     if let Some(c) = &recipe.cell_convs {
         spec.cell_convs = c.clone();
+    }
+    if let Some(d) = &recipe.cell_dilations {
+        spec.cell_dilations = d.clone();
+    }
+    if let Some(r) = recipe.cell_residual {
+        spec.cell_residual = r;
     }
     if let Some(c) = recipe.convs_per_block {
         spec.convs_per_block = c;

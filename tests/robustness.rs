@@ -125,6 +125,20 @@ fn absurd_thread_counts_are_refused_with_a_hint() {
     assert!(png.is_file());
 }
 
+/// Without `--model`, `predict` reads with the model built into the binary (as the fit does), so
+/// it works outside a checkout; a named file that is absent is still an error that says so.
+#[test]
+fn predict_uses_the_built_in_model_from_any_directory() {
+    let d = tempfile::tempdir().unwrap();
+    let png = twill_png(d.path());
+    let out = woven_in(Some(d.path()), &["predict", s(&png), "--view", "--json"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("cell_logits"), "{err}");
+    let out = woven_in(Some(d.path()), &["predict", s(&png), "--model", "models/pre_estimator.safetensors"]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("not found"));
+}
+
 #[test]
 fn a_truncated_jpeg_is_refused() {
     let d = tempfile::tempdir().unwrap();

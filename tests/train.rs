@@ -117,12 +117,18 @@ fn shipped_model_reads_the_fit_targets_pattern() {
 #[test]
 #[ignore]
 fn step_cost() {
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
-    for (backbone, cell) in [(vec![16, 32, 64], vec![64]), (vec![8, 32, 64], vec![64]), (vec![16, 32, 64], vec![])] {
+    let threads: usize = std::env::var("WOVEN_STEP_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+    // (backbone, convs per block, cell convs, cell dilations, orientation planes + residual cells)
+    let shipped = (vec![8, 32, 64], 1, vec![64], vec![], false);
+    let wide = (vec![16, 32, 64], 2, vec![64; 4], vec![1, 2, 4, 1], true);
+    let narrow = (vec![8, 32, 64], 2, vec![64; 4], vec![1, 2, 4, 1], true);
+    for (backbone, per_block, cell, dil, extra) in [shipped, wide, narrow] {
         let mut spec = NetSpec::new(64, output_specs());
-        (spec.backbone, spec.cell_convs) = (backbone.clone(), cell.clone());
+        (spec.backbone, spec.convs_per_block, spec.cell_convs) = (backbone.clone(), per_block, cell.clone());
+        (spec.cell_dilations, spec.orientation_channels, spec.cell_residual) = (dil.clone(), extra, extra);
         let ms = pool.install(|| woven::net::bench_train_step(&spec, 32, 5).unwrap());
-        println!("backbone {backbone:?} cell {cell:?}: {ms:.0} ms per step of 32");
+        println!("backbone {backbone:?} x{per_block} cell {cell:?} dilations {dil:?} orientation/residual {extra}: {ms:.0} ms per step of 32 on {threads} threads");
     }
 }
 

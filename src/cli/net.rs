@@ -65,9 +65,10 @@ pub fn run_train(a: &TrainArgs) -> Result<()> {
 pub struct PredictArgs {
     /// Photo or render (PNG, JPEG, EXR).
     pub image: PathBuf,
-    /// Model weights.
-    #[arg(long, default_value = DEFAULT_MODEL)]
-    pub model: PathBuf,
+    /// Model weights (default: the shipped model built into the binary, as the fit uses, so
+    /// `predict` works from any directory).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
     /// The image holds exactly one repeat (like `woven fit --no-prep`): skip preparation; the grid
     /// comes from --grid or is detected.
     #[arg(long, conflicts_with = "view")]
@@ -113,7 +114,10 @@ fn print_outputs(outputs: &[PredictedOutput]) {
 
 /// `woven predict`.
 pub fn run_predict(a: &PredictArgs) -> Result<()> {
-    let model = load_model(&a.model)?;
+    let model = match &a.model {
+        Some(m) => load_model(m)?,
+        None => woven::pre::shipped_model()?,
+    };
     let img = Image::load(&a.image, 8)?;
     if a.timing {
         let ms = woven::net::bench_inference(&model, 50);
@@ -162,6 +166,16 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
     match v.pattern() {
         Ok(p) => println!("as a weave: {p} ({}×{} minimum repeat)", p.n_e(), p.n_a()),
         Err(e) => println!("as a weave: none ({e})"),
+    }
+    // What the fit starts from when the two yarn families differ in colour
+    // (`fit::preestimate::network_reading`).
+    match woven::net::pool_by_colour(&v, &target, n_e, n_a) {
+        Some(pooled) => {
+            let rows: Vec<String> =
+                pooled.cells().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
+            println!("pooled by colour (two separate colour groups): {}", rows.join("/"));
+        }
+        None => println!("pooled by colour: not applied (no two clearly separate colour groups)"),
     }
     print_outputs(&v.outputs);
     Ok(())

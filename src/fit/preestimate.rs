@@ -235,9 +235,10 @@ pub(crate) fn fit_view(ev: &Evaluator, cloth: &ClothParams, blur0: f32) -> ((i32
 
 /// The pattern the pre-estimator network reads in the fit's target (`n_e × n_a` cells): one
 /// over/under logit per cell, averaged over the copies of each cell in the network's tiled view
-/// (`net::read_view`). `model` replaces the shipped network. `None` (with a warning) when the
-/// network cannot read the target or reads a pattern in which a yarn floats; a model file that
-/// cannot be loaded is an error (it was asked for).
+/// (`net::read_view`), then pooled by colour where that applies ([`network_reading`]). `model`
+/// replaces the shipped network. `None` (with a warning) when the network cannot read the target
+/// or reads a pattern in which a yarn floats; a model file that cannot be loaded is an error (it
+/// was asked for).
 fn network_pattern(
     target: &Image,
     (n_e, n_a): (usize, usize),
@@ -249,21 +250,45 @@ fn network_pattern(
             .with_context(|| format!("loading the pre-estimator {} (given with --model)", m.display()))?,
         None => crate::pre::shipped_model().context("loading the shipped pre-estimator")?,
     };
-    // Unreduced: the shortlist's patterns live on the fit's grid.
-    let read = crate::net::read_view(&net, target, n_e, n_a).map_err(anyhow::Error::from).and_then(|v| {
-        let p = WeavePattern::from_rows_unreduced(&v.cells())?;
-        if p.has_unbound_yarn() {
-            anyhow::bail!("a yarn floats in the pattern read ({p})");
-        }
-        Ok(p)
-    });
+    let read = crate::net::read_view(&net, target, n_e, n_a)
+        .map_err(anyhow::Error::from)
+        .and_then(|v| network_reading(&v, target, n_e, n_a));
     match read {
-        Ok(p) => Ok(Some(p)),
+        Ok((p, _)) => Ok(Some(p)),
         Err(e) => {
             warnings.push(format!("the pre-estimator network gave no usable pattern ({e:#}); ranked candidates only"));
             Ok(None)
         }
     }
+}
+
+/// The pattern of a network reading `view` of `target` (`n_e × n_a` cells, unreduced: the
+/// shortlist's patterns live on the fit's grid), and whether it is the colour-pooled one.
+///
+/// When the target's cells fall into two clearly separate colour groups (`net::pool_by_colour`:
+/// the two yarn families differ in colour, and a cell shows the yarn on top at its centre), each
+/// cell takes its group's mean logit: a cell inside a long float, which holds no yarn edge of its
+/// own, borrows the evidence of the cells of its family that the network reads well (session 9,
+/// docs/benchmarks.md: 82 → 88 % of the grid cells right on the pooled validation views). The
+/// pooled reading is used unless it is no weave (both groups on the same side, so a yarn floats
+/// over the whole repeat); then the cell-by-cell reading. An error when that is no weave either.
+pub(crate) fn network_reading(
+    view: &crate::net::ViewPrediction,
+    target: &Image,
+    n_e: usize,
+    n_a: usize,
+) -> Result<(WeavePattern, bool)> {
+    let weave = |v: &crate::net::ViewPrediction| -> Result<WeavePattern> {
+        let p = WeavePattern::from_rows_unreduced(&v.cells())?;
+        if p.has_unbound_yarn() {
+            anyhow::bail!("a yarn floats in the pattern read ({p})");
+        }
+        Ok(p)
+    };
+    if let Some(Ok(p)) = crate::net::pool_by_colour(view, target, n_e, n_a).as_ref().map(weave) {
+        return Ok((p, true));
+    }
+    Ok((weave(view)?, false))
 }
 
 /// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and
@@ -430,6 +455,52 @@ mod tests {
         assert!(won.r_e > won.r_a, "radii {} {}", won.r_e, won.r_a);
         // Started from the truth, the contest keeps it.
         assert_eq!(twin_contest(&ev, &truth, 8, &stop).1.pattern, truth.pattern);
+    }
+
+    #[test]
+    fn the_network_reading_is_pooled_by_colour_when_the_families_differ() {
+        use crate::net::ViewPrediction;
+        // A 3 × 3 twill (weft over on the diagonal cells) whose weft is red and warp blue, 4 px
+        // per cell; the cell centres show the yarn on top. The network's logits get one cell
+        // wrong with a weak logit: pooling by colour puts it right.
+        let truth = |i: usize, j: usize| (i + j).is_multiple_of(3);
+        let (n, c) = (3usize, 4usize);
+        let target = |red: [f32; 3], blue: [f32; 3]| {
+            let data = (0..n * c * n * c)
+                .map(|k| {
+                    let (x, y) = (k % (n * c), k / (n * c));
+                    // Grid row r from the top is pattern row n − 1 − r.
+                    if truth(n - 1 - y / c, x / c) {
+                        red
+                    } else {
+                        blue
+                    }
+                })
+                .collect();
+            Image::new((n * c) as u32, (n * c) as u32, data)
+        };
+        let logits: Vec<Vec<f32>> =
+            (0..n).map(|i| (0..n).map(|j| if truth(i, j) { 3.0 } else { -3.0 }).collect()).collect();
+        let mut view = ViewPrediction { cell_logits: logits, outputs: Vec::new() };
+        view.cell_logits[1][1] = 0.5; // truth: under (1 + 1 is not a multiple of 3)
+        let want = WeavePattern::from_rows_unreduced(
+            &(0..n).map(|i| (0..n).map(|j| truth(i, j)).collect::<Vec<_>>()).collect::<Vec<_>>(),
+        )
+        .unwrap();
+        let (p, pooled) = network_reading(&view, &target([0.6, 0.1, 0.1], [0.1, 0.1, 0.6]), n, n).unwrap();
+        assert!(pooled && p == want, "pooled {pooled}: {p}");
+        // Families of one colour: no pooling, the cell-by-cell reading (with its wrong cell).
+        let (p, pooled) = network_reading(&view, &target([0.3; 3], [0.3; 3]), n, n).unwrap();
+        assert!(!pooled && p != want && p.get(1, 1));
+        // Both colour groups on the same side (the blue group's mean logit (4 × −0.5 + 2 × 3) / 6
+        // is positive) would float every yarn: the cell-by-cell reading.
+        view.cell_logits = (0..n).map(|i| (0..n).map(|j| if truth(i, j) { 3.0 } else { -0.5 }).collect()).collect();
+        (view.cell_logits[0][1], view.cell_logits[1][0]) = (3.0, 3.0);
+        let (p, pooled) = network_reading(&view, &target([0.6, 0.1, 0.1], [0.1, 0.1, 0.6]), n, n).unwrap();
+        assert!(!pooled && p.get(0, 1) && !p.get(0, 2) && p.get(0, 0));
+        // A reading that is no weave at all is an error.
+        view.cell_logits = vec![vec![1.0; n]; n];
+        assert!(network_reading(&view, &target([0.3; 3], [0.3; 3]), n, n).is_err());
     }
 
     #[test]

@@ -217,6 +217,20 @@ pub struct NetSpec {
     /// Output channels of the 3×3 conv + ReLU layers at cell resolution, after the last pool
     /// (they let a cell see its neighbours' crossings).
     pub cell_convs: Vec<usize>,
+    /// Dilation of each layer of [`NetSpec::cell_convs`] (a 3×3 conv of dilation `d` reads the
+    /// cells `d` apart, Yu & Koltun 2016, "Multi-scale context aggregation by dilated
+    /// convolutions"); empty: all 1 (models made before session 10). With dilations `d_j` the
+    /// cell head sees `Σ d_j` cells (plus the trunk's ~2) to each side: the cells inside a
+    /// satin-8 float, 7 cells long, hold no yarn edge of their own and need that reach.
+    #[serde(default)]
+    pub cell_dilations: Vec<usize>,
+    /// Make each layer at cell resolution after the first whose input and output channels agree
+    /// residual, `h + f(h)` (He et al. 2016, "Deep residual learning"), so a deep stack of
+    /// dilated layers starts near the identity and its gradient reaches the trunk (the first
+    /// turns trunk features into cell features, as in models without the option, which a warm
+    /// start copies); false in models made before session 10.
+    #[serde(default)]
+    pub cell_residual: bool,
     /// 3×3 conv + ReLU layers per pooled block.
     pub convs_per_block: usize,
     /// Width of the hidden layer of the parameter head.
@@ -257,6 +271,8 @@ impl NetSpec {
             px_per_cell: 8,
             backbone: vec![16, 32, 64],
             cell_convs: vec![64],
+            cell_dilations: Vec::new(),
+            cell_residual: false,
             convs_per_block: 1,
             hidden: 64,
             norm_group_size: 0,
@@ -273,6 +289,11 @@ impl NetSpec {
         self.outputs.len()
     }
 
+    /// Dilation of cell conv `j` (1 when [`NetSpec::cell_dilations`] is empty).
+    pub fn cell_dilation(&self, j: usize) -> usize {
+        self.cell_dilations.get(j).copied().unwrap_or(1)
+    }
+
     /// Cells across a training view.
     pub fn cells(&self) -> usize {
         self.input_size / self.px_per_cell
@@ -283,6 +304,15 @@ impl NetSpec {
         let bad = |s: String| Err(NetError::Spec(s));
         if self.backbone.is_empty() || self.backbone.contains(&0) || self.cell_convs.contains(&0) {
             return bad(format!("backbone channels {:?} / cell convs {:?} invalid", self.backbone, self.cell_convs));
+        }
+        if !self.cell_dilations.is_empty()
+            && (self.cell_dilations.len() != self.cell_convs.len() || self.cell_dilations.contains(&0))
+        {
+            return bad(format!(
+                "cell_dilations {:?} must give one positive dilation per cell conv ({} of them)",
+                self.cell_dilations,
+                self.cell_convs.len()
+            ));
         }
         if self.convs_per_block == 0 || self.hidden == 0 {
             return bad("convs_per_block and hidden must be positive".into());
@@ -426,11 +456,20 @@ mod tests {
         assert!(matches!(s.validate(), Err(NetError::Spec(_))), "16 channels are not groups of 3");
         // A spec saved before session 9 (no normalisation or orientation fields) still reads.
         let mut old = serde_json::to_value(spec(64)).unwrap();
-        old.as_object_mut()
-            .unwrap()
-            .retain(|k, _| !["norm_group_size", "orientation_channels", "cell_cues"].contains(&k.as_str()));
+        old.as_object_mut().unwrap().retain(|k, _| {
+            !["norm_group_size", "orientation_channels", "cell_cues", "cell_dilations", "cell_residual"]
+                .contains(&k.as_str())
+        });
         let back: NetSpec = serde_json::from_value(old).unwrap();
         assert_eq!((back.norm_group_size, back.orientation_channels, back.cell_cues), (0, false, false));
+        assert!(back.cell_dilations.is_empty() && !back.cell_residual && back.cell_dilation(0) == 1);
+        let mut s = spec(64);
+        s.cell_dilations = vec![2];
+        assert!(s.validate().is_ok() && s.cell_dilation(0) == 2);
+        s.cell_dilations = vec![1, 2];
+        assert!(matches!(s.validate(), Err(NetError::Spec(_))), "one dilation per cell conv");
+        s.cell_dilations = vec![0];
+        assert!(matches!(s.validate(), Err(NetError::Spec(_))), "dilation 0");
         let mut s = spec(64);
         s.cell_cues = true;
         assert!(matches!(s.validate(), Err(NetError::Spec(_))), "cues come from the orientation planes");

@@ -6,8 +6,9 @@
 //! input (B,4,H,W), H and W multiples of px_per_cell = 2^K
 //!   block k = 0..K: [conv3×3 (+ GroupNorm) + LeakyReLU] × convs_per_block  →  max-pool 2
 //!                   (H/2^K = cells)
-//!   cell convs:     [conv3×3 (+ GroupNorm) + LeakyReLU] per entry of cell_convs
-//!                   (a cell sees its neighbours)
+//!   cell convs:     [conv3×3, dilation d_j (+ GroupNorm) + LeakyReLU] per entry of cell_convs,
+//!                   optionally residual (h + f(h)) after the first, where the channels agree
+//!                   (a cell sees its neighbours up to Σ d_j cells away)
 //!   cell head:      conv1×1 → (B,1,h,w) logits: > 0 means the horizontal yarn (weft) is on top
 //!   parameter head: spatial mean ‖ max of the cell features → fc (hidden) → LeakyReLU →
 //!                   (mean = sigmoid, log-variance clamped to [−12, 2]) per output
@@ -77,7 +78,9 @@ impl PreNet {
         }
         let mut cell = Vec::new();
         for (j, &c) in spec.cell_convs.iter().enumerate() {
-            let conv = conv2d(cin, c, 3, pad, vb.pp(format!("cell{j}")))?;
+            let d = spec.cell_dilation(j);
+            let dilated = Conv2dConfig { padding: d, dilation: d, ..Default::default() };
+            let conv = conv2d(cin, c, 3, dilated, vb.pp(format!("cell{j}")))?;
             cell.push((conv, GroupNorm::new(spec, c, vb.pp(format!("cellnorm{j}")))?));
             cin = c;
         }
@@ -119,13 +122,14 @@ impl PreNet {
             for l in convs {
                 h = layer(&h, l)?;
             }
-            h = h.max_pool2d(2)?;
+            h = max_pool2(&h)?;
         }
         if let Some(c) = &cues {
             h = Tensor::cat(&[&h, c], 1)?;
         }
-        for l in &self.cell {
-            h = layer(&h, l)?;
+        for (j, l) in self.cell.iter().enumerate() {
+            let f = layer(&h, l)?;
+            h = if self.spec.cell_residual && j > 0 && f.dims() == h.dims() { (h + f)? } else { f };
         }
         let cell_logits = h.apply(&self.cell_head)?.squeeze(1)?;
         let (mut mean, mut log_var) = (None, None);
@@ -141,6 +145,22 @@ impl PreNet {
         }
         Ok(NetOutput { cell_logits, mean, log_var })
     }
+}
+
+/// 2 × 2 max-pooling whose backward pass is right.
+///
+/// candle 0.11's `max_pool2d` backward multiplies the upsampled gradient by the *share* of maxima
+/// in each window (`avg_pool` of the arg-max mask, ¼ for a unique maximum) where it should divide
+/// by their count: every pooling scales the gradient of all the layers before it by ¼ (measured:
+/// the trunk's first block got 1/16 of its finite-difference gradient through two pools; test
+/// `gradients_of_the_dilated_residual_stack_match_finite_differences`). Adam's per-weight
+/// normalisation hides most of that, but not its ε nor the balance between the pooled trunk and
+/// the layers after it. `p̂ + 4 (p − p̂)`, with `p̂` the detached pool, has the value `p` exactly
+/// (`p − p̂` is 0) and 4 × candle's gradient, i.e. the whole gradient at a unique maximum.
+fn max_pool2(h: &Tensor) -> Result<Tensor> {
+    let p = h.max_pool2d(2)?;
+    let fixed = p.detach();
+    &fixed + ((&p - &fixed)? * 4.0)?
 }
 
 /// `x` with two more planes, `|∂I/∂x|` and `|∂I/∂y|` of the mean `I` of its three colour
@@ -353,6 +373,85 @@ mod tests {
         let b = net.forward(&y)?.cell_logits.flatten_all()?.to_vec1::<f32>()?;
         assert_ne!(a[0], b[0], "the changed cell's own logit must change");
         assert_eq!(a[63], b[63], "the opposite corner cell is out of reach");
+        Ok(())
+    }
+
+    #[test]
+    fn dilated_cell_convs_reach_further() -> Result<()> {
+        // 32 × 32 px at 4 px per cell: 8 × 8 cells. Changing corner cell (0, 0) reaches, through
+        // the trunk, cells 0–1 of row 0; two cell convs of dilation 1 add 2 cells (up to cell 3),
+        // dilations 1 and 4 add 5 (up to cell 6). So cell (0, 5) must change only with the
+        // dilated stack, with or without the residual connections.
+        let corner_change = |dil: Vec<usize>, residual: bool| -> Result<(Vec<f32>, Vec<f32>)> {
+            let mut s = spec();
+            (s.cell_convs, s.cell_dilations, s.cell_residual) = (vec![8, 8], dil, residual);
+            s.validate().map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+            let (_vm, net) = build(&s, 3)?;
+            let x = Tensor::randn(0f32, 1.0, (1, 4, 32, 32), &Device::Cpu)?;
+            let mut v = x.flatten_all()?.to_vec1::<f32>()?;
+            for c in 0..4 {
+                for y in 0..4 {
+                    for xx in 0..4 {
+                        v[c * 1024 + y * 32 + xx] += 3.0;
+                    }
+                }
+            }
+            let y = Tensor::from_vec(v, (1, 4, 32, 32), &Device::Cpu)?;
+            Ok((
+                net.forward(&x)?.cell_logits.flatten_all()?.to_vec1::<f32>()?,
+                net.forward(&y)?.cell_logits.flatten_all()?.to_vec1::<f32>()?,
+            ))
+        };
+        let (a, b) = corner_change(vec![], false)?;
+        assert_ne!(a[3], b[3], "dilation 1: cell 3 is within reach");
+        assert_eq!(a[4], b[4], "dilation 1: cell 4 is out of reach");
+        for residual in [false, true] {
+            let (a, b) = corner_change(vec![1, 4], residual)?;
+            assert_ne!(a[5], b[5], "dilations 1, 4 (residual {residual}): cell 5 is within reach");
+            assert_eq!(a[7], b[7], "dilations 1, 4 (residual {residual}): cell 7 is out of reach");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn gradients_of_the_dilated_residual_stack_match_finite_differences() -> Result<()> {
+        // candle's backward pass of a dilated conv (a dilated transposed conv for the input, a
+        // strided conv for the kernel) checked against central differences of the cell loss
+        // (`param_weight` 0: the β-NLL term's detached variance weight is not the loss's
+        // derivative by design), for weights of the dilated cell conv, of the layer before it
+        // (gradient through the dilated layer) and of both pooled blocks (gradient through one
+        // and two max-pools: `max_pool2`; with candle's own backward these came out ¼ and 1/16 of
+        // the finite differences).
+        let mut s = spec();
+        (s.cell_convs, s.cell_dilations, s.cell_residual) = (vec![8, 8], vec![1, 2], true);
+        let (vm, net) = build(&s, 5)?;
+        // Seeded input (candle's `randn` draws from the thread's RNG: a different batch each run).
+        let mut rng = StdRng::seed_from_u64(9);
+        let xs: Vec<f32> = (0..2 * 4 * 16 * 16).map(|_| rng.random_range(-1.5f32..1.5)).collect();
+        let x = Tensor::from_vec(xs, (2, 4, 16, 16), &Device::Cpu)?;
+        let cells =
+            Tensor::from_vec((0..32).map(|i| (i % 3 == 0) as u8 as f32).collect::<Vec<_>>(), (2, 4, 4), &Device::Cpu)?;
+        let t = Tensor::new(&[[0.2f32, 0.7], [0.6, 0.1]], &Device::Cpu)?;
+        let total = || -> Result<f32> { loss(&net.forward(&x)?, &cells, &t, 0.0)?.total.to_scalar::<f32>() };
+        let grads = loss(&net.forward(&x)?, &cells, &t, 0.0)?.total.backward()?;
+        let data = vm.data().lock().unwrap();
+        for (name, k) in
+            [("cell1.weight", 40), ("cell0.weight", 100), ("block1.conv0.weight", 7), ("block0.conv0.weight", 7)]
+        {
+            let var = &data[name];
+            let g = grads.get(var.as_tensor()).expect("a gradient").flatten_all()?.to_vec1::<f32>()?[k];
+            let w0 = var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+            let at = |d: f32| -> Result<f32> {
+                let mut w = w0.clone();
+                w[k] += d;
+                var.set(&Tensor::from_vec(w, var.dims(), &Device::Cpu)?)?;
+                total()
+            };
+            let h = 1e-3;
+            let fd = (at(h)? - at(-h)?) / (2.0 * h);
+            at(0.0)?;
+            assert!((g - fd).abs() <= 0.05 * fd.abs().max(1e-3), "{name}[{k}]: backprop {g}, finite difference {fd}");
+        }
         Ok(())
     }
 

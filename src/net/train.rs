@@ -116,6 +116,11 @@ pub struct TrainConfig {
     /// continue later with `resume`. For time budgets and interrupted runs.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stop_after: Option<usize>,
+    /// Start from the weights of this model file instead of the seeded init (see
+    /// `warm_start`): the new network computes the old one's function at step 0, and the
+    /// layers it adds learn from there.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub init_from: Option<std::path::PathBuf>,
 }
 
 impl Default for TrainConfig {
@@ -132,6 +137,7 @@ impl Default for TrainConfig {
             param_weight: 1.0,
             augment: true,
             stop_after: None,
+            init_from: None,
         }
     }
 }
@@ -558,6 +564,84 @@ fn load_checkpoint(path: &Path, opt: &mut AdamW, spec: &NetSpec) -> Result<Check
     Ok(meta)
 }
 
+/// Overwrite the fresh variables of `varmap` (a network of `spec`) from the model file `base`
+/// so that the new network computes exactly the base network's function (function-preserving
+/// growth, as in Chen et al. 2016, "Net2Net: accelerating learning via knowledge transfer"):
+///
+/// * a tensor of the same name and shape is copied;
+/// * a conv weight that only gained input planes (the first layer with
+///   [`NetSpec::orientation_channels`] on a base without them) gets the base weights for the
+///   old planes and zeros for the new ones;
+/// * a residual cell conv (`cell{j}` of a [`NetSpec::cell_residual`] spec, same channels in and
+///   out) that the base lacks starts at zero weight and bias: its branch `leaky(W h + b)` is 0,
+///   so the layer is the identity, and its weights still get the gradient `∂L/∂f · leaky'(0) · h`.
+///
+/// Anything else (a base tensor the new network lacks, a changed width, a new non-residual
+/// layer) is an error: the start would not be the base's function. Returns (copied, zeroed).
+pub fn warm_start(varmap: &VarMap, spec: &NetSpec, base: &Path) -> Result<(usize, usize)> {
+    let bytes = std::fs::read(base).with_context(|| format!("reading init model {}", base.display()))?;
+    let st = safetensors::SafeTensors::deserialize(&bytes)
+        .map_err(|e| anyhow::anyhow!("init model {} is not a safetensors file: {e}", base.display()))?;
+    // The layers `model::PreNet::forward` makes residual: every cell conv after the first with
+    // as many channels in as out.
+    let residual: Vec<String> = (1..spec.cell_convs.len())
+        .filter(|&j| spec.cell_residual && spec.cell_convs[j - 1] == spec.cell_convs[j])
+        .map(|j| format!("cell{j}."))
+        .collect();
+    let data = varmap.data().lock().expect("varmap lock poisoned");
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    let (mut copied, mut zeroed) = (0, 0);
+    for name in names {
+        let var = &data[name];
+        let dims = var.dims().to_vec();
+        match st.tensor(name) {
+            Ok(view) => {
+                let old = decode_f32(&view)?;
+                let vals = if view.shape() == dims.as_slice() {
+                    old
+                } else if view.shape().len() == 4
+                    && dims.len() == 4
+                    && (0..4).all(|a| a == 1 || view.shape()[a] == dims[a])
+                    && view.shape()[1] < dims[1]
+                {
+                    // (out, in, kh, kw): copy the old input planes, zero the new ones.
+                    let (o, cin_old, k) = (dims[0], view.shape()[1], dims[2] * dims[3]);
+                    let mut v = vec![0f32; dims.iter().product()];
+                    for oc in 0..o {
+                        for ic in 0..cin_old {
+                            let src = (oc * cin_old + ic) * k;
+                            let dst = (oc * dims[1] + ic) * k;
+                            v[dst..dst + k].copy_from_slice(&old[src..src + k]);
+                        }
+                    }
+                    v
+                } else {
+                    bail!(
+                        "init model {}: tensor {name} has shape {:?}, the network needs {dims:?}",
+                        base.display(),
+                        view.shape()
+                    );
+                };
+                var.set(&Tensor::from_vec(vals, dims, &Device::Cpu)?)?;
+                copied += 1;
+            }
+            Err(_) if residual.iter().any(|r| name.starts_with(r.as_str())) => {
+                var.set(&Tensor::zeros(dims, candle_core::DType::F32, &Device::Cpu)?)?;
+                zeroed += 1;
+            }
+            Err(_) => bail!(
+                "init model {} lacks tensor {name}, which is not a residual cell conv that could start at zero",
+                base.display()
+            ),
+        }
+    }
+    if let Some(extra) = st.names().into_iter().find(|n| !data.contains_key(*n)) {
+        bail!("init model {} has tensor {extra}, which the network does not use", base.display());
+    }
+    Ok((copied, zeroed))
+}
+
 /// Train the pre-estimator on `samples` and write everything into the directory `out`
 /// (created if needed): `checkpoint.safetensors` after each epoch, and at the end
 /// `model.safetensors` (weights + spec + metrics in the metadata), `history.json`, `report.md`
@@ -616,6 +700,13 @@ fn train_inner(
         bail!("all {} samples fell into the validation split", samples.len());
     }
     let (varmap, net) = model::build(spec, cfg.seed)?;
+    if let Some(base) = &cfg.init_from {
+        let (copied, zeroed) = warm_start(&varmap, spec, base)?;
+        progress.message(&format!(
+            "initialised from {}: {copied} tensors copied, {zeroed} new residual tensors at zero",
+            base.display()
+        ));
+    }
     let mut opt = AdamW::new(&varmap, cfg.weight_decay)?;
     let fp = fingerprint(samples);
     let ckpt = out.join("checkpoint.safetensors");
@@ -918,11 +1009,53 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn warm_start_keeps_the_base_function_and_rejects_other_shapes() {
+        // A base network saved to a file; the grown network adds the orientation planes and two
+        // dilated residual cell convs. After `warm_start` both give the same logits and outputs
+        // on a random batch (the new planes' weights and the residual branches are zero).
+        let dir = tempfile::tempdir().unwrap();
+        let base_spec = tiny_spec();
+        let (base_vm, base_net) = model::build(&base_spec, 11).unwrap();
+        let path = dir.path().join("base.safetensors");
+        save_model(&path, &base_vm, &base_spec, None).unwrap();
+        let mut grown = tiny_spec();
+        (grown.orientation_channels, grown.cell_residual) = (true, true);
+        (grown.cell_convs, grown.cell_dilations) = (vec![16, 16, 16], vec![1, 2, 4]);
+        let (vm, net) = model::build(&grown, 12).unwrap();
+        assert_eq!(
+            warm_start(&vm, &grown, &path).unwrap(),
+            (12, 4),
+            "12 base tensors (block0.conv0.weight widened), cell1 and cell2 zeroed"
+        );
+        let x = Tensor::randn(0f32, 1.0, (3, INPUT_CHANNELS, 32, 32), &Device::Cpu).unwrap();
+        let (a, b) = (base_net.forward(&x).unwrap(), net.forward(&x).unwrap());
+        let diff = |p: &Tensor, q: &Tensor| -> f32 {
+            (p - q).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
+        };
+        assert!(diff(&a.cell_logits, &b.cell_logits) < 1e-5);
+        assert!(diff(a.mean.as_ref().unwrap(), b.mean.as_ref().unwrap()) < 1e-5);
+        // A changed width or a new non-residual layer cannot start from the base's function.
+        let mut wider = tiny_spec();
+        wider.cell_convs = vec![24];
+        let (vm, _) = model::build(&wider, 1).unwrap();
+        let e = warm_start(&vm, &wider, &path).unwrap_err().to_string();
+        assert!(e.contains("tensor cell0.") && e.contains("shape"), "{e}");
+        let mut plain = tiny_spec();
+        plain.cell_convs = vec![16, 16];
+        let (vm, _) = model::build(&plain, 1).unwrap();
+        let e = warm_start(&vm, &plain, &path).unwrap_err().to_string();
+        assert!(e.contains("lacks tensor cell1."), "{e}");
+        let e = warm_start(&vm, &plain, &dir.path().join("none.safetensors")).unwrap_err().to_string();
+        assert!(e.contains("reading init model"), "{e}");
+    }
+
+    #[test]
     fn config_round_trips_through_toml() {
         let c = TrainConfig {
             schedule: LrSchedule::Step { every: 10, gamma: 0.5 },
             augment: false,
             stop_after: Some(3),
+            init_from: Some("models/base.safetensors".into()),
             ..Default::default()
         };
         let s = toml::to_string(&c).unwrap();
