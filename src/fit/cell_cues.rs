@@ -434,9 +434,11 @@ pub enum Verdict {
 ///   with the blurred mean repeat, in which a float's bright centre on a cell boundary and its dark
 ///   ends look much like the other family's.
 /// * **Otherwise the loss decides** with a tolerance: the reading's pattern with the winner's
-///   appearance and shape gets the same appearance descent (`lm_iters` Levenberg–Marquardt
-///   iterations, `refine::polish` without radius rounds) as the winner, and replaces it when its
-///   loss is within [`LOSS_TOLERANCE`] of the winner's.
+///   appearance and shape, and with the families' colours and radii swapped, each get the same
+///   appearance descent (`lm_iters` Levenberg–Marquardt iterations, `refine::polish` without
+///   radius rounds) as the winner; the better replaces the winner when its loss is within
+///   [`LOSS_TOLERANCE`] of the winner's. (Where one of the two is taken as a named weave, the
+///   better of the two variants is what replaces the winner.)
 ///
 /// Returns the cloth kept (polished where a contest ran) and the verdict.
 pub(crate) fn contest(
@@ -453,7 +455,8 @@ pub(crate) fn contest(
         return (cloth.clone(), Verdict::NoContest);
     }
     let gain = cues.energy(&labelling(&cloth.pattern, n_e, n_a)) - reading.energy;
-    if !(gain >= MIN_ENERGY_GAIN) {
+    // NaN (no finite energies) starts no contest either.
+    if gain.is_nan() || gain < MIN_ENERGY_GAIN {
         return (cloth.clone(), Verdict::NoContest);
     }
     let named = |p: &WeavePattern| p.weave_class() != WeaveClass::Other;
@@ -461,9 +464,19 @@ pub(crate) fn contest(
     if fit_named && !read_named {
         return (cloth.clone(), Verdict::KeptNamed);
     }
-    let mut cue = cloth.clone();
-    cue.pattern = reading.pattern.clone();
-    let l_cue = super::refine::polish(ev, &mut cue, 0, lm_iters, stop);
+    // The reading with the winner's appearance, and with the families' colours and radii swapped
+    // (`candidates::inverted_twin`): a reading near the *inverse* of the fit's pattern lays the
+    // other family on the cells the winner's colours were fitted to, and a short appearance
+    // descent does not swap two colours. The better of the two goes on.
+    let (cue, l_cue) = [cloth.clone(), super::candidates::inverted_twin(cloth)]
+        .into_iter()
+        .map(|mut c| {
+            c.pattern = reading.pattern.clone();
+            let l = super::refine::polish(ev, &mut c, 0, lm_iters, stop);
+            (c, l)
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("two variants");
     if read_named && !fit_named {
         return (cue, Verdict::TookNamed);
     }
