@@ -6,7 +6,8 @@
 //! found, and prints per image: the grid, the pattern the cues read and its weave class, the
 //! unary labelling alone (sign of the orientation cue), the mean margin, and with a truth
 //! pattern (`0011/0110/…`, rows by weft as `woven params` prints them) whether the reading is
-//! the truth up to a shift. Then the per-cell tables (orientation t, weft and warp links).
+//! the truth up to a shift. With `CUE_TABLES=1`, the per-cell tables (orientation t, weft and
+//! warp links); `CUE_ORIGIN=x,y` anchors the cell grid at another crop corner.
 
 use anyhow::{Context, Result};
 use woven::fit::cell_cues;
@@ -32,6 +33,15 @@ fn main() -> Result<()> {
             }
         };
         let (n_e, n_a) = (p.n_e, p.n_a);
+        // `CUE_ORIGIN=x,y` anchors the cell grid elsewhere (e.g. the crop corner a fit's
+        // `prep.json` records after its phase alignment).
+        let mut p = p;
+        if let Ok(o) = std::env::var("CUE_ORIGIN") {
+            let v: Vec<u32> = o.split(',').filter_map(|t| t.trim().parse().ok()).collect();
+            if let [x, y] = v[..] {
+                (p.crop.x, p.crop.y) = (x, y);
+            }
+        }
         let Some(cues) = cell_cues::read_prepared(&p, n_e, n_a) else {
             println!("{}: {n_e}×{n_a}, no cues", path.display());
             continue;
