@@ -403,7 +403,7 @@ pub fn labelling(p: &WeavePattern, n_e: usize, n_a: usize) -> Vec<bool> {
     (0..n_e).flat_map(|i| (0..n_a).map(move |j| (i, j))).map(|(i, j)| p.get(i, j)).collect()
 }
 
-/// How the contest of [`contest`] ended.
+/// How the contest of `contest` (the fitted pattern against the reading) ended.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Verdict {
     /// No contest: the reading is the fit's pattern, its grid differs, or the cues do not prefer
