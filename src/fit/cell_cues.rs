@@ -670,6 +670,18 @@ mod tests {
         let c = cues_for(&right.pattern);
         let (kept, v) = contest(&ev2, &c, &reading(&c, &right.pattern), &both, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::TookByLoss, &right.pattern));
+        // A winner one cell from the *inverse* of the truth, with the families' colours swapped
+        // to match (what the twills W038 and W117 ended at): the reading replaces it with each
+        // family's colour back in its place. (Here the short descent alone also swaps them back
+        // from the unswapped variant; the swapped one is the guard where it does not.)
+        let near_inverse = toggled_cell(&crate::fit::candidates::inverted_twin(&truth), 1, 1).expect("a weave");
+        assert_eq!(near_inverse.pattern.weave_class(), WeaveClass::Other);
+        let c = cues_for(&truth.pattern);
+        let (kept, v) = contest(&ev, &c, &reading(&c, &truth.pattern), &near_inverse, 4, &stop);
+        assert_eq!((v, &kept.pattern), (Verdict::TookNamed, &truth.pattern));
+        let d = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum::<f32>();
+        let a = &kept.appearance;
+        assert!(d(a.r_b_e, truth.appearance.r_b_e) < d(a.r_b_e, truth.appearance.r_b_a), "weft {:?}", a.r_b_e);
         // Cues that barely prefer their reading start no contest.
         let mut weak = cues_for(&truth.pattern);
         weak.orient.iter_mut().for_each(|o| *o *= 0.05);
