@@ -327,3 +327,22 @@ fn presets_rendered_two_repeats_wide_get_their_grid() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
+
+/// On the hairy, same-coloured twills W117 and W125 the fit's loss cannot tell warp from weft
+/// (session 9: patterns one cell from a twill, or from its inverse); the cells read from the
+/// rectified photo's structure (`fit::cell_cues`: orientation and continuity across cell
+/// boundaries, over every copy of the repeat) give a 2/2 twill on the 4×4 grid of each.
+#[test]
+fn the_cells_of_hairy_twill_photos_read_as_twills() {
+    use woven::fit::cell_cues::read_prepared;
+    use woven::pattern::WeaveClass;
+    for name in ["W117", "W125"] {
+        let Some(path) = shared_file(&format!("data/real/fabricnet/{name}.jpg")) else { return };
+        let img = Image::load(&path, 32).unwrap();
+        let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
+        let cues = read_prepared(&p, p.n_e, p.n_a).expect("cues on a 4×4 grid with several copies");
+        let r = cues.read().expect("a woven reading");
+        assert_eq!(r.pattern.weave_class(), WeaveClass::Twill, "{name}: {}", r.pattern);
+        assert!(r.margin.iter().all(|&m| m > 0.0), "{name}: {:?}", r.margin);
+    }
+}

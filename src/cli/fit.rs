@@ -90,6 +90,10 @@ pub struct FitArgs {
     /// pre-estimation candidate).
     #[arg(long)]
     pub no_network: bool,
+    /// Do not read the cells' over/under from the prepared photo's structure (its reading is
+    /// otherwise one more candidate and, where the loss cannot tell, replaces the fit's pattern).
+    #[arg(long)]
+    pub no_cell_cues: bool,
     /// Energy per unit MSE of the annealing, a finite number > 0 (default: calibrated so half of
     /// early uphill moves pass).
     #[arg(long, allow_negative_numbers = true, value_parser = parse_energy_scale)]
@@ -130,6 +134,7 @@ impl FitArgs {
         o.pre.enabled = !self.no_pre_estimate;
         o.pre.model = self.model.clone();
         o.pre.network = !self.no_network;
+        o.pre.cell_cues = !self.no_cell_cues;
         o.joint.mode = self.mode.into();
         o.joint.iterations = if self.fast { o.joint.iterations.min(self.iterations) } else { self.iterations };
         o.joint.energy_scale = self.energy_scale;

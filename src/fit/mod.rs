@@ -36,6 +36,7 @@
 pub mod anneal;
 mod candidates;
 pub mod capture;
+pub mod cell_cues;
 mod colours;
 pub mod demo;
 pub mod eval;
@@ -188,11 +189,20 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     stages.mark("prep", &ev0, None);
 
     let mut warnings = std::mem::take(&mut target.warnings);
+    // The cells read from the prepared photo's structure (`cell_cues`), on the crop's cell grid
+    // as aligned above.
+    let cues = match &target.prep {
+        Some(p) if opts.pre.enabled && opts.pre.cell_cues && st0.cells => {
+            cell_cues::read_prepared(p, n_e, n_a).and_then(|c| c.read().map(|r| (c, r)))
+        }
+        _ => None,
+    };
     let pre = preestimate::pre_estimate(
         &st0,
         &opts.pre,
         &target.crop,
         preestimate::default_cloth(pattern0),
+        cues.as_ref().map(|c| &c.1.pattern),
         &mut warnings,
         &mut stages,
     )?;
@@ -221,6 +231,19 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let best = joint.runs.first().cloned().unwrap_or_else(|| (f32::INFINITY, pre.initial.clone()));
     stages.mark("joint", &ev, Some(&best.1));
     let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre, &mut stages);
+    if let Some((c, r)) = cues.as_ref().filter(|_| !joint.stopped) {
+        let (kept, verdict) = cell_cues::contest(&ev, c, r, &cloth, opts.finish.lm_iters, &opts.control.stop);
+        if matches!(verdict, cell_cues::Verdict::TookNamed | cell_cues::Verdict::TookByLoss) {
+            warnings.push(format!(
+                "the cells read from the photo ({}, {:?}) replaced the fitted pattern {} ({verdict:?})",
+                r.pattern,
+                r.pattern.weave_class(),
+                cloth.pattern
+            ));
+        }
+        cloth = kept;
+        stages.mark("cues", &ev, Some(&cloth));
+    }
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
     if !joint.stopped {

@@ -111,6 +111,10 @@ pub struct PreOptions {
     pub network: bool,
     /// Pre-estimator model file replacing the shipped one.
     pub model: Option<PathBuf>,
+    /// Read each cell's over/under from the prepared photo's structure (`cell_cues`): the reading
+    /// joins the shortlist, and after the finish it replaces the fit's pattern where the loss
+    /// cannot tell the two apart (prepared photos with free cells only).
+    pub cell_cues: bool,
 }
 
 impl Default for PreOptions {
@@ -128,6 +132,7 @@ impl Default for PreOptions {
             // candidate, judged by the same warm-up loss as the ranked one (docs/design.md §4.3).
             network: true,
             model: None,
+            cell_cues: true,
         }
     }
 }

@@ -62,13 +62,14 @@ pub(crate) struct PreEstimate {
 }
 
 /// Pre-estimation from `cloth` for the target `crop` (the one-repeat crop before resampling; the
-/// fit's evaluator `st.ev` holds it at the fit's resolution). Without `opts.enabled`, `cloth` is
-/// the only start. Warnings (a network that failed on the input) go to `warnings`.
+/// fit's evaluator `st.ev` holds it at the fit's resolution); `cue`, the pattern read from the
+/// photo's cells, joins the shortlist. Without `opts.enabled`, `cloth` is the only start. Warnings (a network that failed on the input) go to `warnings`.
 pub(crate) fn pre_estimate(
     st: &Stage,
     opts: &PreOptions,
     crop: &Image,
     cloth: ClothParams,
+    cue: Option<&WeavePattern>,
     warnings: &mut Vec<String>,
     clock: &mut StageClock,
 ) -> Result<PreEstimate> {
@@ -98,6 +99,10 @@ pub(crate) fn pre_estimate(
                 shortlist.push(p);
             }
         }
+    }
+    // The cells read from the photo's structure (`cell_cues`) are one more candidate.
+    if let Some(p) = cue.filter(|p| st.cells && !shortlist.contains(p)) {
+        shortlist.push(p.clone());
     }
     clock.mark("rank", st.ev, None);
     // Warm-up: every shortlisted pattern gets its shape scans, colour estimate and a polish at

@@ -26,7 +26,7 @@ pub mod rectify;
 pub mod regularize;
 pub mod survey;
 #[cfg(test)]
-mod testutil;
+pub(crate) mod testutil;
 
 use image::Rgb32FImage;
 use serde::Serialize;
