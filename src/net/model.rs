@@ -353,12 +353,9 @@ mod tests {
         Ok(())
     }
 
-    #[test]
-    fn cell_logits_are_local() -> Result<()> {
-        // Changing the pixels of one corner cell must leave far cells' logits unchanged: the
-        // receptive field of a cell is a few cells, not the image (translation equivariance).
-        let s = spec();
-        let (_vm, net) = build(&s, 2)?;
+    /// Cell logits of a random 32 × 32 px, 4-channel input and of the same input with its corner
+    /// 4 × 4 px (cell (0, 0) at 4 px per cell) raised by 3 in every channel.
+    fn corner_cell_changed(net: &PreNet) -> Result<(Vec<f32>, Vec<f32>)> {
         let x = Tensor::randn(0f32, 1.0, (1, 4, 32, 32), &Device::Cpu)?;
         let mut v = x.flatten_all()?.to_vec1::<f32>()?;
         for c in 0..4 {
@@ -369,8 +366,19 @@ mod tests {
             }
         }
         let y = Tensor::from_vec(v, (1, 4, 32, 32), &Device::Cpu)?;
-        let a = net.forward(&x)?.cell_logits.flatten_all()?.to_vec1::<f32>()?;
-        let b = net.forward(&y)?.cell_logits.flatten_all()?.to_vec1::<f32>()?;
+        Ok((
+            net.forward(&x)?.cell_logits.flatten_all()?.to_vec1::<f32>()?,
+            net.forward(&y)?.cell_logits.flatten_all()?.to_vec1::<f32>()?,
+        ))
+    }
+
+    #[test]
+    fn cell_logits_are_local() -> Result<()> {
+        // Changing the pixels of one corner cell must leave far cells' logits unchanged: the
+        // receptive field of a cell is a few cells, not the image (translation equivariance).
+        let s = spec();
+        let (_vm, net) = build(&s, 2)?;
+        let (a, b) = corner_cell_changed(&net)?;
         assert_ne!(a[0], b[0], "the changed cell's own logit must change");
         assert_eq!(a[63], b[63], "the opposite corner cell is out of reach");
         Ok(())
@@ -387,20 +395,7 @@ mod tests {
             (s.cell_convs, s.cell_dilations, s.cell_residual) = (vec![8, 8], dil, residual);
             s.validate().map_err(|e| candle_core::Error::Msg(e.to_string()))?;
             let (_vm, net) = build(&s, 3)?;
-            let x = Tensor::randn(0f32, 1.0, (1, 4, 32, 32), &Device::Cpu)?;
-            let mut v = x.flatten_all()?.to_vec1::<f32>()?;
-            for c in 0..4 {
-                for y in 0..4 {
-                    for xx in 0..4 {
-                        v[c * 1024 + y * 32 + xx] += 3.0;
-                    }
-                }
-            }
-            let y = Tensor::from_vec(v, (1, 4, 32, 32), &Device::Cpu)?;
-            Ok((
-                net.forward(&x)?.cell_logits.flatten_all()?.to_vec1::<f32>()?,
-                net.forward(&y)?.cell_logits.flatten_all()?.to_vec1::<f32>()?,
-            ))
+            corner_cell_changed(&net)
         };
         let (a, b) = corner_change(vec![], false)?;
         assert_ne!(a[3], b[3], "dilation 1: cell 3 is within reach");
