@@ -30,7 +30,68 @@
 //! render a wrong cell's loss rise outweighs its `ln n_eff` many times over.
 
 use super::candidates::template_candidates;
+use super::evaluator::Evaluator;
+use crate::params::ClothParams;
 use crate::pattern::WeavePattern;
+
+/// Run-off margin under the criterion, in cells' penalties (`finish::runoff`): the ~10 % loss a
+/// few radius rounds can still take off a warmed-up candidate is about two cells' `ln n_eff` on
+/// a hairy photo.
+pub(crate) const RUNOFF_CELLS: f64 = 2.0;
+/// Run-off margin of the loss where no named weave fits the grid.
+pub(crate) const RUNOFF_LOSS: f64 = 0.1;
+
+/// How the finish (and the pre-estimate's choice of starts) chooses among polished states: by the Bayesian information criterion of
+/// `parsimony` when the cells are estimated (a cell that breaks the nearest named weave must
+/// lower the loss by more than the picture's noise and mismatch can), by the loss alone for a
+/// fixed pattern.
+pub(crate) struct PatternChoice {
+    /// Named weaves of the grid (every shift, and their backs); empty for a fixed pattern.
+    named: Vec<crate::pattern::WeavePattern>,
+    /// Effective independent samples of the residual of the state the finish starts from.
+    pub(crate) n_eff: f64,
+}
+
+impl PatternChoice {
+    /// The choice on `ev` for a fit whose cells are free (`cells`), its `n_eff` measured on the
+    /// residual of `best`.
+    pub(crate) fn new(ev: &Evaluator, cells: bool, best: &ClothParams) -> Self {
+        if !cells {
+            return PatternChoice { named: Vec::new(), n_eff: 1.0 };
+        }
+        let (n_e, n_a) = (best.pattern.n_e(), best.pattern.n_a());
+        let img = ev.shaded(&ev.record(best), &best.appearance);
+        PatternChoice { named: named_weaves(n_e, n_a), n_eff: ev.effective_samples_of(&img) }
+    }
+
+    /// The named weave nearest to `p` when `p` is not one.
+    pub(crate) fn nearest_named(&self, p: &crate::pattern::WeavePattern) -> Option<crate::pattern::WeavePattern> {
+        match irregular_cells(p, &self.named) {
+            (d, Some(q)) if d > 0 => Some(q.clone()),
+            _ => None,
+        }
+    }
+
+    /// Whether `score` is close enough to the leader's `lead` that the rivals' unequal
+    /// convergence could decide between them: within [`RUNOFF_CELLS`] cells' penalty
+    /// (`ln n_eff` each) under the criterion, within [`RUNOFF_LOSS`] of the loss for a fixed
+    /// pattern or a grid no named weave fits.
+    pub(crate) fn close_call(&self, score: f64, lead: f64) -> bool {
+        if self.named.is_empty() {
+            score <= lead * (1.0 + RUNOFF_LOSS)
+        } else {
+            score - lead <= RUNOFF_CELLS * self.n_eff.max(1.0).ln()
+        }
+    }
+
+    /// Score of a polished state with loss `loss` (lower is better).
+    pub(crate) fn score(&self, loss: f32, c: &ClothParams) -> f64 {
+        if self.named.is_empty() {
+            return loss as f64;
+        }
+        bic(loss, irregular_cells(&c.pattern, &self.named).0, self.n_eff)
+    }
+}
 
 /// Model-selection score of a fitted pattern: `n_eff · ln L + k · ln n_eff` (see the module
 /// docs). `loss` is clamped away from 0 so that a perfect fit scores finitely.
@@ -163,6 +224,19 @@ mod tests {
         assert_eq!((d, q), (1, Some(&twill)));
         // No named weave on a 3×5 grid: no cell is irregular.
         assert_eq!(irregular_cells(&WeavePattern::parse("11010/10101/01011").unwrap(), &named_weaves(3, 5)), (0, None));
+    }
+
+    #[test]
+    fn a_close_call_is_within_two_cells_penalty_or_a_tenth_of_the_loss() {
+        let named = PatternChoice { named: named_weaves(4, 4), n_eff: 55.0 };
+        let cell = 55f64.ln();
+        assert!(named.close_call(-330.0 + 1.9 * cell, -330.0));
+        assert!(!named.close_call(-330.0 + 2.1 * cell, -330.0));
+        // A fixed pattern (no named weaves): the score is the loss.
+        let fixed = PatternChoice { named: Vec::new(), n_eff: 1.0 };
+        assert!(fixed.close_call(0.0105, 0.01));
+        assert!(!fixed.close_call(0.0115, 0.01));
+        assert_eq!(fixed.score(0.02, &crate::fit::demo::demo_cloth()), 0.02f32 as f64);
     }
 
     #[test]

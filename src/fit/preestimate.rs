@@ -10,6 +10,7 @@ use super::candidates::{best_variant, greedy_sweeps, inverted_twin, rank_candida
 use super::colours::{estimate_colours, pattern_loss};
 use super::evaluator::{state_loss, Evaluator};
 use super::options::PreOptions;
+use super::parsimony::PatternChoice;
 use super::stages::StageClock;
 use super::target::{cell_means, fit_scene, resample, shift_periodic};
 use super::{refine, Stage};
@@ -116,6 +117,13 @@ pub(crate) fn pre_estimate(
     }
     st.control.progress.finish();
     warm.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // The leader is chosen by the finish's criterion (`parsimony::PatternChoice`), not the loss
+    // alone: a candidate a few cells off a named weave that leads by a fraction of a percent at
+    // this convergence would otherwise set the view and the first joint run.
+    if let Some(first) = warm.first().map(|w| w.1.clone()) {
+        let choice = PatternChoice::new(&pre_ev, st.cells, &first);
+        warm.sort_by(|a, b| choice.score(a.0, &a.1).total_cmp(&choice.score(b.0, &b.1)));
+    }
     let mut warmed: Vec<ClothParams> = warm.iter().map(|w| w.1.clone()).collect();
     let mut starts = choose_starts(warm, opts.starts, opts.start_margin);
     clock.mark("warm-up", st.ev, starts.first());
@@ -328,7 +336,7 @@ fn warm_up(
     (l, cand)
 }
 
-/// The starts among the warmed-up candidates `warm` (sorted, lowest loss first): the leader, and
+/// The starts among the warmed-up candidates `warm` (sorted, best first): the leader, and
 /// up to `most − 1` runners-up within `margin` of its loss. A runner-up that close is too close
 /// to call at this stage (a pattern and its inverse with swapped colours often are): it gets a
 /// joint run of its own.
