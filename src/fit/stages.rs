@@ -21,6 +21,9 @@ pub struct StageTime {
     pub cpu_secs: Option<f64>,
     /// Geometry records (re-traces) of the stage.
     pub retraces: usize,
+    /// Scores of states the stage had already scored, answered without a re-trace (the
+    /// evaluator's memo, `Evaluator::trace_mse`).
+    pub reused: usize,
     /// Loss (MSE + barrier, the fit's evaluator) of the best state after the stage; `None` for
     /// stages that leave no state (preparation, output).
     pub loss: Option<f32>,
@@ -32,6 +35,7 @@ pub(crate) struct StageClock {
     last: Instant,
     cpu_last: Option<f64>,
     traces_last: usize,
+    reused_last: usize,
     /// Stages closed so far, in order.
     pub stages: Vec<StageTime>,
 }
@@ -39,7 +43,7 @@ pub(crate) struct StageClock {
 impl StageClock {
     /// A clock whose first stage started at `start`.
     pub(crate) fn new(start: Instant) -> Self {
-        StageClock { last: start, cpu_last: process_cpu_secs(), traces_last: 0, stages: Vec::new() }
+        StageClock { last: start, cpu_last: process_cpu_secs(), traces_last: 0, reused_last: 0, stages: Vec::new() }
     }
 
     /// Close stage `stage`: its time since the last mark, the re-traces of `ev`'s shared counter
@@ -47,17 +51,19 @@ impl StageClock {
     /// any stage).
     pub(crate) fn mark(&mut self, stage: &'static str, ev: &Evaluator, state: Option<&ClothParams>) {
         let (now, cpu) = (Instant::now(), process_cpu_secs());
-        let traces = ev.traces().count();
+        let (traces, reused) = (ev.traces().count(), ev.traces().reused());
         let loss = state.map(|c| total_loss(ev.trace_mse(c), &c.appearance.to_vec()));
         self.stages.push(StageTime {
             stage,
             secs: now.duration_since(self.last).as_secs_f64(),
             cpu_secs: cpu.zip(self.cpu_last).map(|(a, b)| a - b),
             retraces: traces.saturating_sub(self.traces_last),
+            reused: reused.saturating_sub(self.reused_last),
             loss,
         });
         // The loss's own trace and time belong to no stage.
-        (self.last, self.cpu_last, self.traces_last) = (Instant::now(), process_cpu_secs(), ev.traces().count());
+        (self.last, self.cpu_last, self.traces_last, self.reused_last) =
+            (Instant::now(), process_cpu_secs(), ev.traces().count(), ev.traces().reused());
     }
 }
 
