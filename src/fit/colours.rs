@@ -68,7 +68,8 @@ pub(crate) fn yarn_pixels(ev: &Evaluator, cache: &PathCache, p: &crate::pattern:
             continue;
         }
         let body = median_colour(t, own.iter().copied());
-        let yarn: Vec<usize> = own.iter().copied().filter(|&k| d2(&t.data[k], &body) <= d2(&t.data[k], &hole)).collect();
+        let yarn: Vec<usize> =
+            own.iter().copied().filter(|&k| d2(&t.data[k], &body) <= d2(&t.data[k], &hole)).collect();
         if yarn.is_empty() {
             continue;
         }
