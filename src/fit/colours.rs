@@ -34,7 +34,7 @@ const CELL_MARGIN: f32 = 0.1;
 ///
 /// A pixel is kept where (1) the model covers it: at most [`YARN_MAX_MISS`] of its samples miss
 /// the cloth (`PathCache::misses`, blurred as the target was), and (2) the target shows yarn
-/// there: its colour is nearer the median colour of its family's kept pixels than the median
+/// there: its colour is nearer the median colour of its family's covered pixels than the median
 /// colour of the target where the model sees through ([`GAP_MIN_MISS`]), the picture's own hole
 /// colour (white behind a back light, a grey backdrop, black on a table). Gaps sit at the cell
 /// corners in both the model and the target, so the model's gaps show where the target's holes
