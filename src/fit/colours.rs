@@ -4,6 +4,7 @@
 
 use super::evaluator::Evaluator;
 use super::target;
+use crate::image_io::Image;
 use crate::params::ClothParams;
 use crate::render::PathCache;
 
@@ -15,12 +16,96 @@ pub(crate) fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f3
     ev.loss_of(&cache, &cand.appearance)
 }
 
-/// Body colours: per channel a two-point affine fit of the rendered cell means of each yarn
-/// family against `R^B` (`S^B` set equal), inverted at the target's cell means.
+/// Most share of a pixel's samples (after the target's blur) that may miss the model's cloth for
+/// the pixel to count as yarn in the colour estimate.
+const YARN_MAX_MISS: f32 = 0.1;
+/// Least share of a pixel's samples (after the blur) that must miss the model's cloth for the
+/// pixel to show the gap between the yarns (the picture's hole colour is read there).
+const GAP_MIN_MISS: f32 = 0.9;
+/// Inner margin of a cell (share of its side at each edge) left out of the family means.
+const CELL_MARGIN: f32 = 0.1;
+
+/// The pixels (row-major, one per pixel of the target) whose colour is a yarn's in both the
+/// model and the target: the body colour is a property of the yarn, and a pixel in a gap (the
+/// back light or the backdrop seen through the cloth) only drags a family mean toward the gap's
+/// colour, by as much as the gaps of the target are larger than the model's at its current radii
+/// (session 10, target 0 of the whole path: holes reaching into the warp cells made the darkest
+/// cells the brightest, and the families came out equal).
+///
+/// A pixel is kept where (1) the model covers it: at most [`YARN_MAX_MISS`] of its samples miss
+/// the cloth (`PathCache::misses`, blurred as the target was), and (2) the target shows yarn
+/// there: its colour is nearer the median colour of its family's covered pixels than the median
+/// colour of the target where the model sees through ([`GAP_MIN_MISS`]), the picture's own hole
+/// colour (white behind a back light, a grey backdrop, black on a table). Gaps sit at the cell
+/// corners in both the model and the target, so the model's gaps show where the target's holes
+/// are without knowing their colour. Without a gap in the model, only (1) applies; a family left
+/// with no pixel keeps its covered pixels.
+pub(crate) fn yarn_pixels(ev: &Evaluator, cache: &PathCache, p: &crate::pattern::WeavePattern, c: u32) -> Vec<bool> {
+    let t = ev.target();
+    let (w, h) = cache.size();
+    let (miss, _) = cache.misses();
+    if (w, h) != (t.width, t.height) {
+        return vec![true; t.data.len()];
+    }
+    let miss = ev.observe(&Image::new(w, h, miss.iter().map(|&m| [m; 3]).collect()));
+    let covered: Vec<bool> = miss.data.iter().map(|m| m[0] <= YARN_MAX_MISS).collect();
+    let gap: Vec<usize> = (0..miss.data.len()).filter(|&k| miss.data[k][0] >= GAP_MIN_MISS).collect();
+    if gap.is_empty() {
+        return covered;
+    }
+    let hole = median_colour(t, gap.iter().copied());
+    let (n_e, n_a) = (p.n_e(), p.n_a());
+    // Family on top in each pixel's cell (weft: true).
+    let family = |k: usize| -> Option<bool> {
+        let (j, r) = ((k as u32 % w / c.max(1)) as usize, (k as u32 / w / c.max(1)) as usize);
+        (j < n_a && r < n_e).then(|| p.get(n_e - 1 - r, j))
+    };
+    let d2 = |a: &[f32; 3], b: &[f32; 3]| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>();
+    let mut keep = covered.clone();
+    for side in [true, false] {
+        let own: Vec<usize> = (0..keep.len()).filter(|&k| covered[k] && family(k) == Some(side)).collect();
+        if own.is_empty() {
+            continue;
+        }
+        let body = median_colour(t, own.iter().copied());
+        let yarn: Vec<usize> =
+            own.iter().copied().filter(|&k| d2(&t.data[k], &body) <= d2(&t.data[k], &hole)).collect();
+        if yarn.is_empty() {
+            continue;
+        }
+        own.iter().for_each(|&k| keep[k] = false);
+        yarn.iter().for_each(|&k| keep[k] = true);
+    }
+    keep
+}
+
+/// Per-channel median colour of `img` at the pixels `idx` (zero if none).
+fn median_colour(img: &Image, idx: impl Iterator<Item = usize>) -> [f32; 3] {
+    let px: Vec<[f32; 3]> = idx.map(|k| img.data[k]).collect();
+    std::array::from_fn(|ch| {
+        let mut v: Vec<f32> = px.iter().map(|p| p[ch]).collect();
+        if v.is_empty() {
+            return 0.0;
+        }
+        let mid = v.len() / 2;
+        *v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+    })
+}
+
+/// Body colours: per channel a two-point affine fit of the rendered family means of each yarn
+/// family against `R^B` (`S^B` set equal), inverted at the target's family means; every mean
+/// over the same pixels, those a yarn covers in both ([`yarn_pixels`]).
 fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32) {
+    let keep = yarn_pixels(ev, cache, &cloth.pattern, c);
+    fit_colours_on(ev, cloth, cache, c, &keep);
+}
+
+/// [`fit_colours`] with the family means over the pixels `keep` (row-major, one per pixel).
+fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32, keep: &[bool]) {
     let p = cloth.pattern.clone();
     let t = ev.target();
-    let (me, ma) = (target::yarn_mean(t, &p, c, true, 0.1), target::yarn_mean(t, &p, c, false, 0.1));
+    let mean = |img: &Image, side: bool| target::yarn_mean_where(img, &p, c, side, CELL_MARGIN, keep);
+    let (me, ma) = (mean(t, true), mean(t, false));
     let with_body = |v: f32| {
         let mut a = cloth.appearance.clone();
         a.r_b_e = [v; 3];
@@ -40,15 +125,11 @@ fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u3
         }
         out
     };
-    if let (Some(m), Some(r0), Some(r1)) =
-        (me, target::yarn_mean(&i0, &p, c, true, 0.1), target::yarn_mean(&i1, &p, c, true, 0.1))
-    {
+    if let (Some(m), Some(r0), Some(r1)) = (me, mean(&i0, true), mean(&i1, true)) {
         cloth.appearance.r_b_e = solve(m, r0, r1);
         cloth.appearance.s_b_e = cloth.appearance.r_b_e;
     }
-    if let (Some(m), Some(r0), Some(r1)) =
-        (ma, target::yarn_mean(&i0, &p, c, false, 0.1), target::yarn_mean(&i1, &p, c, false, 0.1))
-    {
+    if let (Some(m), Some(r0), Some(r1)) = (ma, mean(&i0, false), mean(&i1, false)) {
         cloth.appearance.r_b_a = solve(m, r0, r1);
         cloth.appearance.s_b_a = cloth.appearance.r_b_a;
     }
@@ -110,5 +191,46 @@ mod tests {
         // The pattern loss writes the same estimate into its candidate.
         let mut cand = cloth.clone();
         assert!(pattern_loss(&ev, &mut cand, c) < grey);
+    }
+
+    #[test]
+    fn gap_pixels_stay_out_of_the_family_colours() {
+        // An open back-lit weave (thin yarns, white holes at the corners), estimated with the
+        // model's yarns thicker than the truth's: the target's holes reach into cells the model
+        // covers. Blue weft and ochre warp as in the demo cloth.
+        let mut truth = demo_cloth();
+        truth.pattern = crate::pattern::WeavePattern::parse("110/011/101").unwrap();
+        (truth.r_e, truth.r_a, truth.n_p) = (2.6, 2.8, 3);
+        let c = 16;
+        let scene = fit_scene(3, 3, c, 4, 2, &LightRig::default_rig());
+        let ev = Evaluator::of_own_render(&truth, scene);
+        let mut model = truth.clone();
+        (model.r_e, model.r_a) = (3.6, 3.6);
+        let cache = ev.record(&model);
+        let keep = yarn_pixels(&ev, &cache, &model.pattern, c);
+        let (kept, all) = (keep.iter().filter(|&&k| k).count(), keep.len());
+        assert!(kept > all / 5 && kept < all * 9 / 10, "kept {kept} of {all}");
+        // Kept pixels are yarn in the target: none is as bright as a hole.
+        let lum = |p: &[f32; 3]| (p[0] + p[1] + p[2]) / 3.0;
+        let hole = ev.target().data.iter().map(lum).fold(0.0f32, f32::max);
+        let brightest_kept = (0..all).filter(|&k| keep[k]).map(|k| lum(&ev.target().data[k])).fold(0.0f32, f32::max);
+        assert!(brightest_kept < 0.8 * hole, "kept {brightest_kept} vs hole {hole}");
+        // What the estimate reads when the model's geometry is the truth's (it sets `S^B` equal
+        // to `R^B`, so even then it is not the truth's `R^B`): the reference of the estimates
+        // with the wrong radii.
+        let read = |model: &ClothParams, cache: &PathCache, keep: &[bool]| {
+            let mut cl = model.clone();
+            fit_colours_on(&ev, &mut cl, cache, c, keep);
+            (cl.appearance.r_b_e, cl.appearance.r_b_a)
+        };
+        let reference = read(&truth, &ev.record(&truth), &vec![true; all]);
+        let err = |keep: &[bool]| {
+            let (e, a) = read(&model, &cache, keep);
+            (0..3).map(|k| (e[k] - reference.0[k]).abs().max((a[k] - reference.1[k]).abs())).fold(0.0f32, f32::max)
+        };
+        // Every pixel: the white holes wash both families out (weft red 0.67 for 0.31).
+        let (with_gaps, yarn_only) = (err(&vec![true; all]), err(&keep));
+        assert!(with_gaps > 0.25, "every pixel: worst channel {with_gaps} off");
+        assert!(yarn_only < with_gaps / 3.0 && yarn_only < 0.1, "yarn pixels: {yarn_only} (every pixel {with_gaps})");
     }
 }

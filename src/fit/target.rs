@@ -373,6 +373,21 @@ fn prep_grid(img: &Image) -> Option<(usize, usize)> {
 /// Mean colour of the cells where weft (`weft_on_top = true`) or warp lies on top, over the
 /// inner part of each cell (`margin` of the cell size ignored at each edge). `None` if no cell.
 pub fn yarn_mean(img: &Image, p: &WeavePattern, c: u32, weft_on_top: bool, margin: f32) -> Option<[f32; 3]> {
+    yarn_mean_where(img, p, c, weft_on_top, margin, &vec![true; img.data.len()])
+}
+
+/// Mean colour of the cells where weft (`weft_on_top = true`) or warp lies on top, as
+/// [`yarn_mean`], over only the pixels where `keep` (row-major, one per pixel of `img`) is true:
+/// the pixels a yarn covers, not the gaps between the yarns (see `colours::yarn_pixels`).
+/// `None` if no pixel is kept.
+pub fn yarn_mean_where(
+    img: &Image,
+    p: &WeavePattern,
+    c: u32,
+    weft_on_top: bool,
+    margin: f32,
+    keep: &[bool],
+) -> Option<[f32; 3]> {
     let m = ((c as f32 * margin).round() as u32).min(c.saturating_sub(1) / 2);
     let mut acc = [0.0f64; 3];
     let mut n = 0usize;
@@ -384,6 +399,9 @@ pub fn yarn_mean(img: &Image, p: &WeavePattern, c: u32, weft_on_top: bool, margi
             let (x0, y0, x1, y1) = cell_rect(p.n_e(), i, j, c);
             for y in y0 + m..y1 - m {
                 for x in x0 + m..x1 - m {
+                    if !keep.get((y * img.width + x) as usize).copied().unwrap_or(false) {
+                        continue;
+                    }
                     let v = img.get(x, y);
                     (0..3).for_each(|k| acc[k] += v[k] as f64);
                     n += 1;
