@@ -219,37 +219,46 @@ fn solve_backdrop(
         .sum();
     let mut beta = [0.0f32; 3];
     let mut beta_loss = 0.0f32;
-    let at = |i: f32| BACKDROP_MAX * (i / (BACKDROP_GRID - 1) as f32).powi(2);
     let gap = touched.gather(|p| cov[p]);
     for (k, bk) in beta.iter_mut().enumerate() {
         let base = touched.gather(|p| cloth[p][k]);
-        let loss = |b: f32| touched.loss(k, target, |i| base[i] + b * gap[i]);
-        let grid: Vec<f32> = (0..BACKDROP_GRID).map(|i| loss(at(i as f32))).collect();
-        let best = (0..BACKDROP_GRID).min_by(|&i, &j| grid[i].total_cmp(&grid[j])).unwrap_or(0);
-        // Golden-section search on the two grid intervals around the best grid point.
-        let (mut lo, mut hi) = (at((best as f32 - 1.0).max(0.0)), at((best + 1).min(BACKDROP_GRID - 1) as f32));
-        let g = 0.618_034f32;
-        let (mut x1, mut x2) = (hi - g * (hi - lo), lo + g * (hi - lo));
-        let (mut f1, mut f2) = (loss(x1), loss(x2));
-        for _ in 0..16 {
-            if f1 <= f2 {
-                hi = x2;
-                (x2, f2) = (x1, f1);
-                x1 = hi - g * (hi - lo);
-                f1 = loss(x1);
-            } else {
-                lo = x1;
-                (x1, f1) = (x2, f2);
-                x2 = lo + g * (hi - lo);
-                f2 = loss(x2);
-            }
-        }
-        let (x, f) = if f1 <= f2 { (x1, f1) } else { (x2, f2) };
-        let (x, f) = if f <= grid[best] { (x, f) } else { (at(best as f32), grid[best]) };
+        let (x, f) = backdrop_search(|b: f32| touched.loss(k, target, |i| base[i] + b * gap[i]));
         *bk = x;
         beta_loss += f;
     }
     (beta_loss < lights_loss).then_some(beta)
+}
+
+/// The backdrop level in `[0, BACKDROP_MAX]` that minimises `loss`, with its loss: the best of a
+/// grid quadratic in the level, then a golden-section search on the two grid intervals around it
+/// (kept only where it beats the grid point).
+fn backdrop_search(loss: impl Fn(f32) -> f32) -> (f32, f32) {
+    let at = |i: f32| BACKDROP_MAX * (i / (BACKDROP_GRID - 1) as f32).powi(2);
+    let grid: Vec<f32> = (0..BACKDROP_GRID).map(|i| loss(at(i as f32))).collect();
+    let best = (0..BACKDROP_GRID).min_by(|&i, &j| grid[i].total_cmp(&grid[j])).unwrap_or(0);
+    let (mut lo, mut hi) = (at((best as f32 - 1.0).max(0.0)), at((best + 1).min(BACKDROP_GRID - 1) as f32));
+    let g = 0.618_034f32;
+    let (mut x1, mut x2) = (hi - g * (hi - lo), lo + g * (hi - lo));
+    let (mut f1, mut f2) = (loss(x1), loss(x2));
+    for _ in 0..16 {
+        if f1 <= f2 {
+            hi = x2;
+            (x2, f2) = (x1, f1);
+            x1 = hi - g * (hi - lo);
+            f1 = loss(x1);
+        } else {
+            lo = x1;
+            (x1, f1) = (x2, f2);
+            x2 = lo + g * (hi - lo);
+            f2 = loss(x2);
+        }
+    }
+    let (x, f) = if f1 <= f2 { (x1, f1) } else { (x2, f2) };
+    if f <= grid[best] {
+        (x, f)
+    } else {
+        (at(best as f32), grid[best])
+    }
 }
 
 /// The blocks of the loss that see a gap (a pixel with miss coverage above 1e-6), their pixels
@@ -688,30 +697,8 @@ mod tests {
         let lights_loss: f32 = (0..3).map(|k| loss_of(k, &|p| cloth[p][k] + lights[p][k])).sum();
         let mut beta = [0.0f32; 3];
         let mut beta_loss = 0.0f32;
-        let at = |i: f32| BACKDROP_MAX * (i / (BACKDROP_GRID - 1) as f32).powi(2);
         for (k, bk) in beta.iter_mut().enumerate() {
-            let loss = |b: f32| loss_of(k, &|p| cloth[p][k] + b * cov[p]);
-            let grid: Vec<f32> = (0..BACKDROP_GRID).map(|i| loss(at(i as f32))).collect();
-            let best = (0..BACKDROP_GRID).min_by(|&i, &j| grid[i].total_cmp(&grid[j])).unwrap_or(0);
-            let (mut lo, mut hi) = (at((best as f32 - 1.0).max(0.0)), at((best + 1).min(BACKDROP_GRID - 1) as f32));
-            let g = 0.618_034f32;
-            let (mut x1, mut x2) = (hi - g * (hi - lo), lo + g * (hi - lo));
-            let (mut f1, mut f2) = (loss(x1), loss(x2));
-            for _ in 0..16 {
-                if f1 <= f2 {
-                    hi = x2;
-                    (x2, f2) = (x1, f1);
-                    x1 = hi - g * (hi - lo);
-                    f1 = loss(x1);
-                } else {
-                    lo = x1;
-                    (x1, f1) = (x2, f2);
-                    x2 = lo + g * (hi - lo);
-                    f2 = loss(x2);
-                }
-            }
-            let (x, f) = if f1 <= f2 { (x1, f1) } else { (x2, f2) };
-            let (x, f) = if f <= grid[best] { (x, f) } else { (at(best as f32), grid[best]) };
+            let (x, f) = backdrop_search(|b: f32| loss_of(k, &|p| cloth[p][k] + b * cov[p]));
             *bk = x;
             beta_loss += f;
         }

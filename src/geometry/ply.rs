@@ -125,6 +125,27 @@ fn ply_consts(n_p: u32) -> PlyConsts {
     all.get(n_p as usize).copied().unwrap_or_else(|| PlyConsts::compute(n_p))
 }
 
+/// The normal cross-section of a yarn at the point nearest `q`, with a ray direction `d`
+/// projected into it (docs/design.md §1.3): the frame, the point `a` and direction `dv` in the
+/// section, `|dv|²`, and the hit tolerance (10⁻³ of the radius).
+struct Section {
+    f: super::yarn::YarnFrame,
+    a: Vec2,
+    dv: Vec2,
+    aa: f32,
+    tol: f32,
+}
+
+impl Section {
+    fn at(yarn: &YarnCurve, q: Vec3, d: Vec3) -> Self {
+        let f = yarn.frame(yarn.closest_s(q));
+        let rel = q - f.c;
+        let a = Vec2::new(rel.dot(f.ex), rel.dot(f.ey));
+        let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
+        Section { a, dv, aa: dv.dot(dv), tol: 1e-3 * yarn.radius, f }
+    }
+}
+
 /// `tan` of the ply and the fiber twist angles, computed once (a `tanf` per ply query otherwise).
 fn twist_tans() -> (f32, f32) {
     static TANS: OnceLock<(f32, f32)> = OnceLock::new();
@@ -212,6 +233,20 @@ impl PlyModel {
         (kappa, len)
     }
 
+    /// The unit directions of the ply centres in the cross-section, with their indices: ply `i`
+    /// sits at `β_i = 2πi/n_p + base` (`base` = κ·arc). One sincos for ply 0, then a rotation by
+    /// 2π/n_p per ply (a sincos per ply and call was 4 % of a render's profile).
+    fn ply_dirs(&self, base: f32) -> impl Iterator<Item = (usize, Vec2)> {
+        let step = ply_consts(self.n_p).step;
+        let first = Vec2::new(base.cos(), base.sin());
+        (0..self.n_p as usize).scan(first, move |dir, i| {
+            if i > 0 {
+                *dir = step.rotate(*dir);
+            }
+            Some((i, *dir))
+        })
+    }
+
     /// Does the line through `q` along `d` cross any ply of `yarn` (ply visibility `V_p`, docs/design.md §1.7)?
     pub fn blocks(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
         let (ds, _) = yarn.dir_to_round(d);
@@ -223,22 +258,10 @@ impl PlyModel {
     /// −tol`), without the fiber twist and the hit's frame. Every shadow ray that meets a tube
     /// asks this (the shadow rays were 35 % of a fit's CPU, this test a third of them).
     fn crosses(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
-        let s = yarn.closest_s(q);
-        let f = yarn.frame(s);
         let (rp, ring, _) = self.layout(yarn.radius);
         let (kappa, _) = self.ply_twist(yarn);
-        let rel = q - f.c;
-        let a = Vec2::new(rel.dot(f.ex), rel.dot(f.ey));
-        let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
-        let aa = dv.dot(dv);
-        let tol = 1e-3 * yarn.radius;
-        let base = kappa * f.arc;
-        let mut dir = Vec2::new(base.cos(), base.sin());
-        let step = ply_consts(self.n_p).step;
-        for i in 0..self.n_p as usize {
-            if i > 0 {
-                dir = step.rotate(dir);
-            }
+        let Section { f, a, dv, aa, tol } = Section::at(yarn, q, d);
+        for (_, dir) in self.ply_dirs(kappa * f.arc) {
             let c = dir * ring;
             let oc = a - c;
             let cc = oc.dot(oc) - rp * rp;
@@ -261,26 +284,12 @@ impl PlyModel {
     /// `entry`: the first ply surface at `t ≥ 0`; otherwise the last ply surface left at `t ≤ 0`.
     /// Returns (t, ply index, crossed count, 2D hit, ply centre, ply phase, frame, s).
     fn intersect(&self, yarn: &YarnCurve, q: Vec3, d: Vec3, entry: bool) -> Option<PlyLocal> {
-        let s = yarn.closest_s(q);
-        let f = yarn.frame(s);
         let (rp, ring, _) = self.layout(yarn.radius);
         let (kappa, kappa_f) = self.twists(yarn);
-        let rel = q - f.c;
-        let a = Vec2::new(rel.dot(f.ex), rel.dot(f.ey));
-        let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
-        let aa = dv.dot(dv);
-        let tol = 1e-3 * yarn.radius;
+        let Section { f, a, dv, aa, tol } = Section::at(yarn, q, d);
         let mut best: Option<(f32, usize, Vec2)> = None;
         let mut crossed = 0;
-        // Ply i sits at angle β_i = 2πi/n_p + κ·arc: one sincos for ply 0, then a rotation by
-        // 2π/n_p per ply (a sincos per ply and call was 4 % of a render's profile).
-        let base = kappa * f.arc;
-        let mut dir = Vec2::new(base.cos(), base.sin());
-        let step = ply_consts(self.n_p).step;
-        for i in 0..self.n_p as usize {
-            if i > 0 {
-                dir = step.rotate(dir);
-            }
+        for (i, dir) in self.ply_dirs(kappa * f.arc) {
             let c = dir * ring;
             let oc = a - c;
             let cc = oc.dot(oc) - rp * rp;
