@@ -4,7 +4,9 @@
 
 use super::capture::{MAX_HOLE_REACH, SPOT_REACH};
 use super::options::InputOptions;
-use super::target::{boundary_phase, cell_phase, corner_reach, detect_grid, hole_phase, resample, shift_periodic};
+use super::target::{
+    boundary_phase, cell_phase_given, corner_reach, detect_grid, hole_phase, resample, shift_periodic,
+};
 use crate::image_io::Image;
 use crate::pattern::MAX_SIDE;
 use anyhow::{bail, Context, Result};
@@ -166,26 +168,22 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool) -
         agree.iter().filter(|a| a.0).all(|&(_, h, b)| 4 * apart(h, b) <= ci)
             && corner_reach(image, c, *h, SPOT_REACH) <= MAX_HOLE_REACH
     });
-    let model_fold = || cell_phase(image, model, c).0;
-    let mut fold: Option<(i32, i32)> = None;
-    let mut axis = |k: usize| -> i32 {
+    // Steps 1 and 2, axis by axis.
+    let settle = |k: usize| -> Option<i32> {
         if (k == 0 && strong.0) || (k == 1 && strong.1) {
-            return if k == 0 { bx } else { by };
+            return Some(if k == 0 { bx } else { by });
         }
-        if let Some(((hx, hy), (rx, ry))) = holes {
-            let (h, r) = if k == 0 { (hx, rx) } else { (hy, ry) };
-            if r >= HOLE_MIN_CONCENTRATION {
-                return h;
-            }
-        }
-        let m = *fold.get_or_insert_with(model_fold);
-        if k == 0 {
-            m.0
-        } else {
-            m.1
-        }
+        let ((hx, hy), (rx, ry)) = holes?;
+        let (h, r) = if k == 0 { (hx, rx) } else { (hy, ry) };
+        (r >= HOLE_MIN_CONCENTRATION).then_some(h)
     };
-    (axis(0), axis(1))
+    let settled = (settle(0), settle(1));
+    if let (Some(x), Some(y)) = settled {
+        return (x, y);
+    }
+    // Step 3 places only the axes left open, the others held where they are settled.
+    let open = cell_phase_given(image, model, c, settled).0;
+    (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1))
 }
 
 /// Whether the capture estimated from the whole photo says, beyond doubt, that its bright spots
@@ -446,7 +444,7 @@ mod tests {
             let (_, (ex, ey)) = boundary_phase(&img, c);
             assert!(ex >= BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
             // The model's fold, which decided y before, misses the boundary.
-            let (fold, _) = cell_phase(&img, &model, c);
+            let (fold, _) = cell_phase_given(&img, &model, c, (Some(boundary_phase(&img, c).0 .0), None));
             if off(sy + fold.1).abs() >= 2 {
                 fold_missed += 1;
             }
@@ -456,7 +454,7 @@ mod tests {
                 off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
                 "framed ({sx}, {sy}) off, shifted by ({dx}, {dy})"
             );
-            // Without the holes, the fold decides y as before.
+            // Without the holes, the fold (x held at the edges' phase) decides y as before.
             assert_eq!(cue_phase(&img, &model, c, false).1, fold.1);
         }
         assert!(fold_missed >= 2, "the model fold missed only {fold_missed} of 4");
