@@ -759,10 +759,14 @@ mod tests {
             // and the held one is returned as held.
             for hold in [-dx, -dx + 3] {
                 let ((hx, hy), _) = cell_phase_given(&shifted, &m, c, (Some(hold), None));
-                assert_eq!((hx, wrap(hy + dy).abs() <= 1), (wrap(hold), true), "({dx},{dy}) x held at {hold}: y {hy}");
+                assert_eq!(
+                    (hx.rem_euclid(c as i32), wrap(hy + dy).abs() <= 1),
+                    (hold.rem_euclid(c as i32), true),
+                    "({dx},{dy}) x held at {hold}: y {hy}"
+                );
             }
             let ((hx, hy), _) = cell_phase_given(&shifted, &m, c, (None, Some(-dy)));
-            assert_eq!((wrap(hx + dx).abs() <= 1, hy), (true, wrap(-dy)));
+            assert_eq!((wrap(hx + dx).abs() <= 1, hy.rem_euclid(c as i32)), (true, (-dy).rem_euclid(c as i32)));
         }
         // A flat image has no phase.
         assert_eq!(cell_phase(&Image::filled(50, 50, [0.5; 3]), &m, c), ((0, 0), 0.0));
