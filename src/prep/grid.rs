@@ -245,6 +245,14 @@ pub fn edge_grid(g: &Gray, axis_x: bool, pitch0: f64) -> (f64, f64, f64) {
     (pitch, phase, conf)
 }
 
+/// Correlation of a band with its shifted neighbour that [`pitch_from_line_shift`] accepts
+/// whatever the bands' own repeat strength.
+pub const MIN_SHIFT_CORR: f64 = 0.3;
+/// Below [`MIN_SHIFT_CORR`], the fraction of the bands' own repeat correlation that the shift's
+/// correlation must reach: the neighbouring band must match at least half as well as the band
+/// matches its own copy one repeat on (both are lowered alike by hair and fibre noise).
+pub const SHIFT_CORR_OF_REPEAT: f64 = 0.5;
+
 /// Smallest relative amplitude of the edge fundamental for [`edge_grid`] to set pitch and phase.
 /// Procedural and rendered weaves give 0.2–0.7; fibre noise on a uniform patch stays below 0.05.
 pub const MIN_EDGE_CONFIDENCE: f64 = 0.08;
@@ -384,6 +392,12 @@ fn axis_grid(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, strength: f64, mi
 /// for which `s` is within 0.15 yarn of a whole number of yarns `P/n`. `None` when the bands do
 /// not repeat (strength < 0.3), the best shift correlates below 0.3 or is near 0 (neighbouring
 /// lines alike: no information), or no `n` fits. Returns (pitch, summed shift correlation).
+///
+/// The shift's correlation floor is [`MIN_SHIFT_CORR`], or [`SHIFT_CORR_OF_REPEAT`] × the bands'
+/// own repeat strength where that is lower: on a hairy photo (FabricNET W104: white weft floats
+/// over dark warps covered in loose fibres) the bands repeat at strength 0.43 and their best shift,
+/// one warp, correlates at 0.24, so the absolute floor alone returned nothing and the float length
+/// (241 px) stood as the warp pitch.
 pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64) -> Option<(f64, f64)> {
     let t;
     let lines = if axis_x {
@@ -429,41 +443,61 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
     if strength < 0.3 {
         return None;
     }
-    // The shift of each band against the next, summed over the pairs.
+    // The shift of each band against the one `step` lines on, summed over the pairs: the best
+    // (signed shift, mean correlation).
     let half = (period / 2.0).floor() as isize;
-    let mut best = (0isize, f64::MIN);
-    for s in -half + 1..=half {
-        let mut acc = 0.0;
-        for pair in bands.windows(2) {
-            let (a, b) = (&pair[0], &pair[1]);
-            let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
-            for x in 0..w as isize {
-                let xs = x + s;
-                if xs < 0 || xs >= w as isize {
-                    continue;
+    let best_shift = |step: usize| {
+        let mut best = (0isize, f64::MIN);
+        let pairs = bands.len().saturating_sub(step);
+        if pairs == 0 {
+            return best;
+        }
+        for s in -half + 1..=half {
+            let mut acc = 0.0;
+            for (a, b) in bands.iter().zip(&bands[step..]) {
+                let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+                for x in 0..w as isize {
+                    let xs = x + s;
+                    if xs < 0 || xs >= w as isize {
+                        continue;
+                    }
+                    let (u, v) = (a[x as usize], b[xs as usize]);
+                    ab += u * v;
+                    aa += u * u;
+                    bb += v * v;
                 }
-                let (u, v) = (a[x as usize], b[xs as usize]);
-                ab += u * v;
-                aa += u * u;
-                bb += v * v;
+                if aa > 0.0 && bb > 0.0 {
+                    acc += ab / (aa * bb).sqrt();
+                }
             }
-            if aa > 0.0 && bb > 0.0 {
-                acc += ab / (aa * bb).sqrt();
+            let c = acc / pairs as f64;
+            if c > best.1 {
+                best = (s, c);
             }
         }
-        let c = acc / (bands.len() - 1) as f64;
-        if c > best.1 {
-            best = (s, c);
-        }
-    }
-    let (s, c) = (best.0.unsigned_abs() as f64, best.1);
-    if c < 0.3 {
+        best
+    };
+    let (s_signed, c) = best_shift(1);
+    let s = s_signed.unsigned_abs() as f64;
+    // The shift's correlation is judged against the bands' own repeat: hair, fibre and yarn
+    // irregularity lower how well a band matches its neighbour and how well it matches itself one
+    // period on by the same amount, so a neighbour that matches at least half as well as the
+    // band's own copy is shifted by that much, whatever the hair (see `MIN_SHIFT_CORR`).
+    if c < MIN_SHIFT_CORR.min(SHIFT_CORR_OF_REPEAT * strength) {
         return None;
     }
+    // Below the absolute floor a chance shift can win; a twill's or satin's lines step by the same
+    // shift every line, so the bands two lines apart must then be shifted by twice as much
+    // (modulo the repeat), within the tolerance of the yarn count below.
+    let second = (c < MIN_SHIFT_CORR).then(|| best_shift(2).0 as f64);
     (2..=8usize).find_map(|n| {
         let pitch = period / n as f64;
         let k = (s / pitch).round();
-        (k >= 1.0 && (s - k * pitch).abs() <= 0.15 * pitch && pitch >= min_pitch).then_some((pitch, c))
+        let twice = second.is_none_or(|s2| {
+            let d = (s2 - 2.0 * s_signed as f64).rem_euclid(period);
+            d.min(period - d) <= 0.3 * pitch
+        });
+        (k >= 1.0 && (s - k * pitch).abs() <= 0.15 * pitch && pitch >= min_pitch && twice).then_some((pitch, c))
     })
 }
 
@@ -602,5 +636,65 @@ mod tests {
         }
         let noise = superposed_pitch(&g, true, 4.0).map_or(0.0, |(_, s)| s);
         assert!(noise < 0.1, "noise strength {noise}");
+    }
+
+    /// White weft floats over dark warps (a 3/1 twill, each weft over three warps and under one,
+    /// stepping one warp a row; warp pitch 24 px, weft pitch 20 px), the warps between the floats
+    /// too dark to show their boundaries, and loose fibres over everything: per weft band, noise
+    /// along x of `sigma`, blurred over 3 px. The floats make the x profile repeat at 96 px (the
+    /// float plus one warp); the yarn pitch is only in how each row's floats are shifted against
+    /// the next's.
+    fn hairy_floats(sigma: f32, wave: f64, floats: bool, seed: u64) -> Gray {
+        use rand::prelude::*;
+        use rand_distr::{Distribution, Normal};
+        let (w, h, px, py) = (384usize, 240usize, 24.0f64, 20.0f64);
+        let mut rng = StdRng::seed_from_u64(seed);
+        let normal = Normal::new(0.0f32, sigma).unwrap();
+        let mut g = Gray::new(w, h);
+        let bands = (h as f64 / py).ceil() as usize;
+        for j in 0..bands {
+            let raw: Vec<f32> = (0..w + 6).map(|_| normal.sample(&mut rng)).collect();
+            let hair: Vec<f32> = (0..w).map(|x| raw[x..x + 7].iter().sum::<f32>() / 7.0f32.sqrt()).collect();
+            let off = wave * (2.0 * rng.random::<f64>() - 1.0);
+            for y in (j as f64 * py).ceil() as usize..(((j + 1) as f64 * py).ceil() as usize).min(h) {
+                let across = (y as f64 + 0.5) / py - j as f64 - 0.5;
+                for (x, (px_out, &fibre)) in g.data[y * w..(y + 1) * w].iter_mut().zip(&hair).enumerate() {
+                    let warp = ((x as f64 + 0.5 + off) / px).floor() as i64;
+                    let under = floats && (warp - j as i64).rem_euclid(4) == 3;
+                    let v = if under { 0.08 } else { 0.9 * (1.0 - 1.5 * across * across) as f32 };
+                    *px_out = (v + fibre).max(0.0);
+                }
+            }
+        }
+        g
+    }
+
+    #[test]
+    fn the_yarn_pitch_under_hairy_floats_comes_from_the_line_shift() {
+        let weft = AxisGrid { pitch: 20.0, phase: 0.0, strength: 0.8, valleys: Vec::new() };
+        // Fibre noise lowers the bands' own repeat (strength ≈ 0.4) and, with wefts displaced
+        // by up to 7 px (waviness), their shift correlation more: below the absolute
+        // floor on 5 of these 8 seeds, still half the repeat's.
+        let mut below_floor = 0;
+        for seed in 0..8 {
+            let got = pitch_from_line_shift(&hairy_floats(0.4, 7.0, true, seed), true, &weft, 4.0);
+            let (pitch, c) = got.unwrap_or_else(|| panic!("seed {seed}: no pitch from the shifts"));
+            assert!((pitch - 24.0).abs() < 1.0, "seed {seed}: pitch {pitch}");
+            below_floor += usize::from(c < MIN_SHIFT_CORR);
+        }
+        assert!(below_floor >= 4, "only {below_floor} of 8 below the absolute floor: the test does not test the rule");
+        // More fibre noise (σ 0.45): on seed 0 a chance shift wins below the absolute floor and fits
+        // five yarns of 19.2 px within tolerance; only the bands two lines apart (not shifted by
+        // twice as much) tell it from a step. Whatever is returned must be the yarn pitch.
+        for seed in 0..8 {
+            if let Some((pitch, _)) = pitch_from_line_shift(&hairy_floats(0.45, 7.0, true, seed), true, &weft, 4.0) {
+                assert!((pitch - 24.0).abs() < 1.0, "seed {seed}: wrong pitch {pitch}");
+            }
+        }
+        // The same fibre noise and waviness without floats: no pitch.
+        for seed in 0..8 {
+            let got = pitch_from_line_shift(&hairy_floats(0.4, 7.0, false, seed), true, &weft, 4.0);
+            assert_eq!(got, None, "seed {seed}");
+        }
     }
 }

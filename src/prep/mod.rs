@@ -391,6 +391,28 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
             }
         }
     }
+    // 4c. A repeat found along one axis only: the named weaves repeat in a square (n × n cells),
+    //     so the other axis's one predicted shift is tested on the cells (`cells::CellMatrix::
+    //     square_repeat`), where the image is too short along it for a search over every shift.
+    if let Some(m) = &cm {
+        let n_of = |per: &period::AxisPeriod, a: &AxisGrid, k: usize| {
+            per.repeated.then(|| n_cells[k].unwrap_or_else(|| (per.period / a.pitch).round() as usize))
+        };
+        let (nx, ny) = (n_of(&per_x, &ax0, 0), n_of(&per_y, &ay0, 1));
+        for (k, (axis_x, per, a, n_other)) in
+            [(true, &mut per_x, &ax0, ny), (false, &mut per_y, &ay0, nx)].into_iter().enumerate()
+        {
+            if per.repeated {
+                continue;
+            }
+            if let Some(n) = n_other {
+                if let Some(c) = m.square_repeat(axis_x, n) {
+                    *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
+                    n_cells[k] = Some(n);
+                }
+            }
+        }
+    }
     // Without a repeat on either axis the whole image is one repeat, which only a strong yarn grid
     // justifies: noise passes the first structure test often enough (its integral projections
     // have some autocorrelation at any lag) and would otherwise come out as a small random grid.
