@@ -482,7 +482,11 @@ mod tests {
     /// default rig, and flattened yarns with flyaway fibres lit front and back (every shadow ray
     /// into a vertex's own tube, between plies, through a flattened tube, past a hair). A change
     /// of the renderer's arithmetic or random streams changes them; a pure speed-up must not.
+    /// The hashes are of an x86-64 Linux build (glibc's `sinf`/`cosf`); a libm that rounds a
+    /// last bit differently changes them without any change here: then take them again from
+    /// commit d91f2f6 (the code before the anchors) on that platform.
     #[test]
+    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
     fn the_anchored_tracer_renders_the_pre_anchor_images_to_the_bit() {
         let round = ClothParams::preset("twill22").unwrap();
         let scene = Scene { width: 24, height: 20, spp: 2, ..Scene::default() };
