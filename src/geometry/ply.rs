@@ -1,7 +1,7 @@
 //! Implicit plies and fibers (docs/design.md §1.2–§1.4): helical plies inside the yarn tube,
 //! fibers as 1D cross-section tables (normal perturbation and ambient occlusion per angle).
 
-use super::yarn::YarnCurve;
+use super::yarn::{Anchor, YarnCurve};
 use glam::{Quat, Vec2, Vec3};
 use rand::prelude::*;
 use std::f32::consts::{PI, TAU};
@@ -137,9 +137,11 @@ struct Section {
 }
 
 impl Section {
-    fn at(yarn: &YarnCurve, q: Vec3, d: Vec3) -> Self {
-        let f = yarn.frame(yarn.closest_s(q));
-        let rel = q - f.c;
+    /// The section at an anchored point (`a.q` in the stretched space, `d` a stretched-space
+    /// direction).
+    fn at(yarn: &YarnCurve, anchor: &Anchor, d: Vec3) -> Self {
+        let f = anchor.frame;
+        let rel = anchor.q - f.c;
         let a = Vec2::new(rel.dot(f.ex), rel.dot(f.ey));
         let dv = Vec2::new(d.dot(f.ex), d.dot(f.ey));
         Section { a, dv, aa: dv.dot(dv), tol: 1e-3 * yarn.radius, f }
@@ -249,18 +251,24 @@ impl PlyModel {
 
     /// Does the line through `q` along `d` cross any ply of `yarn` (ply visibility `V_p`, docs/design.md §1.7)?
     pub fn blocks(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
+        self.blocks_at(yarn, &yarn.anchor(q), d)
+    }
+
+    /// [`PlyModel::blocks`] at an anchored point ([`YarnCurve::anchor`]; `d` in the world): the
+    /// same answer, without searching the curve again for the point's section.
+    pub fn blocks_at(&self, yarn: &YarnCurve, anchor: &Anchor, d: Vec3) -> bool {
         let (ds, _) = yarn.dir_to_round(d);
-        self.crosses(yarn, yarn.to_round(q), ds)
+        self.crosses(yarn, anchor, ds)
     }
 
     /// `intersect(yarn, q, d, true).is_some()` without the hit: the same ply tests, computed the
     /// same way in the same order, ending at the first ply the line enters ahead of `q` (`t₁ ≥
     /// −tol`), without the fiber twist and the hit's frame. Every shadow ray that meets a tube
     /// asks this (the shadow rays were 35 % of a fit's CPU, this test a third of them).
-    fn crosses(&self, yarn: &YarnCurve, q: Vec3, d: Vec3) -> bool {
+    fn crosses(&self, yarn: &YarnCurve, anchor: &Anchor, d: Vec3) -> bool {
         let (rp, ring, _) = self.layout(yarn.radius);
         let (kappa, _) = self.ply_twist(yarn);
-        let Section { f, a, dv, aa, tol } = Section::at(yarn, q, d);
+        let Section { f, a, dv, aa, tol } = Section::at(yarn, anchor, d);
         for (_, dir) in self.ply_dirs(kappa * f.arc) {
             let c = dir * ring;
             let oc = a - c;
@@ -283,10 +291,10 @@ impl PlyModel {
     /// Ply intersection in the yarn's normal cross-section at `q` (projected ray, docs/design.md §1.3).
     /// `entry`: the first ply surface at `t ≥ 0`; otherwise the last ply surface left at `t ≤ 0`.
     /// Returns (t, ply index, crossed count, 2D hit, ply centre, ply phase, frame, s).
-    fn intersect(&self, yarn: &YarnCurve, q: Vec3, d: Vec3, entry: bool) -> Option<PlyLocal> {
+    fn intersect(&self, yarn: &YarnCurve, anchor: &Anchor, d: Vec3, entry: bool) -> Option<PlyLocal> {
         let (rp, ring, _) = self.layout(yarn.radius);
         let (kappa, kappa_f) = self.twists(yarn);
-        let Section { f, a, dv, aa, tol } = Section::at(yarn, q, d);
+        let Section { f, a, dv, aa, tol } = Section::at(yarn, anchor, d);
         let mut best: Option<(f32, usize, Vec2)> = None;
         let mut crossed = 0;
         for (i, dir) in self.ply_dirs(kappa * f.arc) {
@@ -359,10 +367,23 @@ impl PlyModel {
         entry: bool,
         footprint: Option<(f32, f32)>,
     ) -> Option<PlyHit> {
+        self.map_filtered_at(yarn, &yarn.anchor(q), d, entry, footprint)
+    }
+
+    /// [`PlyModel::map_filtered`] at an anchored point ([`YarnCurve::anchor`]; `d` in the world):
+    /// the same hit, without searching the curve again for the point's section.
+    pub fn map_filtered_at(
+        &self,
+        yarn: &YarnCurve,
+        anchor: &Anchor,
+        d: Vec3,
+        entry: bool,
+        footprint: Option<(f32, f32)>,
+    ) -> Option<PlyHit> {
         // Flattened yarns: the mapping runs in the stretched space where the tube is round, and
         // the frame comes back through the map (world `t`: divide by `|S d|`).
         let (d, len) = yarn.dir_to_round(d);
-        let l = self.intersect(yarn, yarn.to_round(q), d, entry)?;
+        let l = self.intersect(yarn, anchor, d, entry)?;
         let f = l.frame;
         let n2 = (l.hit - l.centre).normalize_or(Vec2::Y);
         let ply_t = (f.t + (f.ey * l.beta_dir.x - f.ex * l.beta_dir.y) * (l.ring * l.kappa)).normalize();
@@ -496,7 +517,7 @@ mod tests {
                     // Along the yarn axis now and then (the projected-ray degenerate case).
                     let d = if rng.random::<f32>() < 0.05 { f.t } else { d };
                     let (ds, _) = y.dir_to_round(d);
-                    let full = m.intersect(y, y.to_round(q), ds, true).is_some();
+                    let full = m.intersect(y, &y.anchor(q), ds, true).is_some();
                     assert_eq!(m.blocks(y, q, d), full, "aspect {aspect} n_p {n_p} s {s} d {d}");
                     if full {
                         yes += 1;
@@ -507,5 +528,53 @@ mod tests {
             }
         }
         assert!(yes > 500 && no > 500, "both answers exercised: {yes} crossing, {no} not");
+    }
+
+    /// One anchor per tube point, reused for every direction asked there (as a path vertex
+    /// reuses it for all its shadow rays), answers what a fresh curve search per question
+    /// answers, to the bit: the ply test, the ply mapping (entry and exit), the exit distance
+    /// and the tube normal, on round and flattened yarns.
+    #[test]
+    fn an_anchor_reused_across_directions_answers_as_a_fresh_search() {
+        use crate::geometry::tile::TileGeometry;
+        use crate::geometry::yarn::YarnShape;
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(12);
+        let (mut mapped, mut exits) = (0, 0);
+        for (aspect, n_p) in [(1.0f32, 3u32), (0.5, 4)] {
+            let shape = YarnShape { crossing: 0.5, aspect };
+            let set = YarnSet::with_shape(&WeavePattern::preset("twill22").unwrap(), 3.5, 4.0, shape);
+            let geom = TileGeometry::new(set);
+            let m = PlyModel { n_p, n_f: 30 };
+            for (yi, y) in geom.set.yarns.iter().enumerate() {
+                for _ in 0..100 {
+                    // A world point on the tube (the round tube's point mapped out of the
+                    // stretched space).
+                    let f = y.frame(rng.random::<f32>() * y.period());
+                    let ang = std::f32::consts::TAU * rng.random::<f32>();
+                    let q = f.c + (f.ex * ang.cos() + f.ey * ang.sin()) * y.radius * 0.999;
+                    let p = Vec3::new(q.x, q.y, q.z * aspect);
+                    let anchor = y.anchor(p);
+                    assert_eq!(y.tube_normal_at(&anchor).to_array(), y.tube_normal(p).to_array());
+                    for _ in 0..8 {
+                        let d =
+                            Vec3::new(rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5)
+                                .normalize_or(Vec3::Z);
+                        assert_eq!(m.blocks_at(y, &anchor, d), m.blocks(y, p, d));
+                        for entry in [true, false] {
+                            let (a, b) = (m.map_filtered_at(y, &anchor, d, entry, None), m.map(y, p, d, entry));
+                            assert_eq!(format!("{a:?}"), format!("{b:?}"));
+                            mapped += a.is_some() as usize;
+                        }
+                        if d.dot(y.tube_normal(p)) < 0.0 {
+                            let te = geom.exit_tube_at(yi, &anchor, d);
+                            assert_eq!(te.to_bits(), geom.exit_tube(yi, p, d).to_bits());
+                            exits += (te > 0.0) as usize;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(mapped > 1000 && exits > 1000, "{mapped} ply hits, {exits} exits exercised");
     }
 }

@@ -6,7 +6,7 @@
 //! side: one tile of the minimum pattern stands for the whole (infinite) fabric.
 
 use super::hair::{Hair, HairFibre};
-use super::yarn::{YarnSet, PITCH};
+use super::yarn::{Anchor, YarnSet, PITCH};
 
 /// Capsules per yarn per crossed cell. Shading uses the exact spline tube, so the capsule chain only
 /// has to find hits: 6 per cell keeps the chain within ~0.07 units of the tube (sagitta of the crimp).
@@ -331,20 +331,27 @@ impl TileGeometry {
     /// local straight cylinder, with bisection as a fallback (in the stretched space of flattened
     /// yarns, the distance converted back to the world).
     pub fn exit_tube(&self, yarn: usize, p: Vec3, d: Vec3) -> f32 {
-        let y = &self.set.yarns[yarn];
-        if y.aspect == 1.0 {
-            return self.exit_round(yarn, p, d);
-        }
-        let (ds, len) = y.dir_to_round(d);
-        self.exit_round(yarn, y.to_round(p), ds) / len
+        self.exit_tube_at(yarn, &self.set.yarns[yarn].anchor(p), d)
     }
 
-    /// [`TileGeometry::exit_tube`] in the stretched space where the tubes are round.
-    fn exit_round(&self, yarn: usize, p: Vec3, d: Vec3) -> f32 {
+    /// [`TileGeometry::exit_tube`] from an anchored point of yarn `yarn`
+    /// ([`crate::geometry::yarn::YarnCurve::anchor`]; `d` in the world): the same distance,
+    /// without searching the curve again for the start's frame.
+    pub fn exit_tube_at(&self, yarn: usize, anchor: &Anchor, d: Vec3) -> f32 {
+        let y = &self.set.yarns[yarn];
+        if y.aspect == 1.0 {
+            return self.exit_round(yarn, anchor, d);
+        }
+        let (ds, len) = y.dir_to_round(d);
+        self.exit_round(yarn, anchor, ds) / len
+    }
+
+    /// [`TileGeometry::exit_tube`] in the stretched space where the tubes are round, from the
+    /// anchor's point `q` with the frame of its closest curve point.
+    fn exit_round(&self, yarn: usize, anchor: &Anchor, d: Vec3) -> f32 {
         let y = &self.set.yarns[yarn];
         let r = y.radius;
-        let (_, s0) = y.distance(p);
-        let f = y.frame(s0);
+        let (p, f) = (anchor.q, anchor.frame);
         // Far root of |(p + t d − c) × T| = r.
         let q = p - f.c;
         let qp = q - f.t * q.dot(f.t);

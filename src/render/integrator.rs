@@ -8,7 +8,7 @@ use super::camera::Camera;
 use super::lights::{Light, LightSample};
 use crate::geometry::ply::PlyModel;
 use crate::geometry::tile::TileGeometry;
-use crate::geometry::yarn::Family;
+use crate::geometry::yarn::{Anchor, Family};
 use crate::params::Appearance;
 use crate::shading::bysdf::VertexKind;
 use crate::shading::ggx::{sample_reflection, sample_transmission};
@@ -169,8 +169,9 @@ impl Strategies {
 /// The surface a path vertex lies on, for its shadow rays.
 #[derive(Clone, Copy)]
 enum Surface {
-    /// Yarn `yarn` at tile point `pt`.
-    Yarn { yarn: usize, pt: Vec3 },
+    /// Yarn `yarn` at a tile point, anchored to its nearest curve frame (computed once per
+    /// vertex: each shadow ray into the own tube asks for the ply test and the exit there).
+    Yarn { yarn: usize, anchor: Anchor },
     /// The flyaway fibre with id `id` ([`crate::geometry::tile::HairHit::id`]).
     Hair { id: usize },
 }
@@ -191,10 +192,6 @@ impl Tracer<'_> {
         [q.x / self.geom.set.tile_x, q.y / self.geom.set.tile_y]
     }
 
-    fn tube_normal(&self, yarn: usize, p: Vec3) -> Vec3 {
-        self.geom.set.yarns[yarn].tube_normal(p)
-    }
-
     /// Visibility along `dir` from world point `pw` on `surface`, testing the implicit plies at
     /// every tube crossing (ply visibility `V_p`, docs/design.md §1.7, ambiguity 17). From a yarn
     /// (tile point `pt`, tube normal `nt`), a direction into its own tube is blocked where it meets
@@ -209,13 +206,13 @@ impl Tracer<'_> {
             Surface::Hair { id } => Some((id, f32::INFINITY)),
         };
         match surface {
-            Surface::Yarn { yarn, pt } if dir.dot(nt) < 0.0 => {
+            Surface::Yarn { yarn, anchor } if dir.dot(nt) < 0.0 => {
                 // Towards the inside of its own yarn: blocked where the line meets a ply.
                 let own = &self.geom.set.yarns[yarn];
-                if self.plies.blocks(own, pt, dir) {
+                if self.plies.blocks_at(own, &anchor, dir) {
                     return false;
                 }
-                let te = self.geom.exit_tube(yarn, pt, dir);
+                let te = self.geom.exit_tube_at(yarn, &anchor, dir);
                 start = pw + dir * (te + EPS);
                 travelled = te + EPS;
             }
@@ -231,10 +228,12 @@ impl Tracer<'_> {
                 return false;
             }
             let y = &self.geom.set.yarns[hit.yarn];
-            if self.plies.blocks(y, hit.p, dir) {
+            // One anchor for the ply test and, when the ray passes between the plies, the exit.
+            let anchor = y.anchor(hit.p);
+            if self.plies.blocks_at(y, &anchor, dir) {
                 return false;
             }
-            let te = self.geom.exit_tube(hit.yarn, hit.p, dir);
+            let te = self.geom.exit_tube_at(hit.yarn, &anchor, dir);
             let step = hit.t + te + EPS;
             start += dir * step;
             travelled += step;
@@ -412,9 +411,12 @@ impl Tracer<'_> {
             // Only the first vertex sees the pixel's footprint; deeper vertices sample their fiber
             // where the path lands, which is already spread over the fibers by the refraction.
             let footprint = (depth == 0).then_some((self.footprint, fiber_phase));
-            let Some(ph) = self.plies.map_filtered(yarn, hit.p, ray_d, true, footprint) else {
+            // The hit's curve frame, found once for the ply hit, the tube normal, the shadow rays
+            // into the own tube and the chord to the exit.
+            let anchor = yarn.anchor(hit.p);
+            let Some(ph) = self.plies.map_filtered_at(yarn, &anchor, ray_d, true, footprint) else {
                 // Between plies: march on through this tube without shading (ambiguity 6).
-                let te = self.geom.exit_tube(hit.yarn, hit.p, ray_d);
+                let te = self.geom.exit_tube_at(hit.yarn, &anchor, ray_d);
                 ray_o = xw + ray_d * (te + EPS);
                 skip = Some((hit.yarn, 1e-2));
                 gaps += 1;
@@ -423,11 +425,11 @@ impl Tracer<'_> {
             depth += 1;
             let frame = Frame::new(ph.normal, ph.tangent);
             let v = frame.to_local(-ray_d);
-            let nt = self.tube_normal(hit.yarn, hit.p);
+            let nt = yarn.tube_normal_at(&anchor);
             let (alpha, eta) = (self.sampling.alpha_s, self.sampling.eta_s);
             let st =
                 Strategies { v, nt, refl: Some(alpha), refr: self.transmission.then_some((alpha, eta)), inward: true };
-            let here = Surface::Yarn { yarn: hit.yarn, pt: hit.p };
+            let here = Surface::Yarn { yarn: hit.yarn, anchor };
             let lights = self.sample_lights(rng, here, xw, &frame, &st, &mut buf.lights);
             let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
             let (r1, r2) = (rng.random::<f32>(), rng.random::<f32>());
@@ -471,11 +473,12 @@ impl Tracer<'_> {
             vx.refr = Some((tl, pdf));
             buf.verts.push(vx);
             // Exit point y: the far wall of the same tube along the refracted direction.
-            let chord = self.geom.exit_tube(hit.yarn, hit.p, tw);
+            let chord = self.geom.exit_tube_at(hit.yarn, &anchor, tw);
             let yt = hit.p + tw * chord;
             let yw = xw + tw * chord;
-            let ny = self.tube_normal(hit.yarn, yt);
-            let Some(py) = self.plies.map(yarn, yt, tw, false) else {
+            let anchor_y = yarn.anchor(yt);
+            let ny = yarn.tube_normal_at(&anchor_y);
+            let Some(py) = self.plies.map_filtered_at(yarn, &anchor_y, tw, false, None) else {
                 ray_o = yw + ny * EPS;
                 ray_d = tw;
                 skip = Some((hit.yarn, 1e-2));
@@ -485,7 +488,7 @@ impl Tracer<'_> {
             let vy = fy.to_local(-tw);
             let (alpha, eta) = (self.sampling.alpha_s_y, self.sampling.eta_s_y);
             let st = Strategies { v: vy, nt: ny, refl: None, refr: Some((alpha, eta)), inward: false };
-            let exit = Surface::Yarn { yarn: hit.yarn, pt: yt };
+            let exit = Surface::Yarn { yarn: hit.yarn, anchor: anchor_y };
             let lights = self.sample_lights(rng, exit, yw, &fy, &st, &mut buf.lights);
             let (u1, u2) = (rng.random::<f32>(), rng.random::<f32>());
             let mut vyx = PathVertex {

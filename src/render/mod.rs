@@ -467,4 +467,36 @@ mod tests {
             assert_eq!(a, b, "{threads:?}");
         }
     }
+
+    /// FNV-1a over the bits of an image's values.
+    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
+    fn image_hash(img: &Image) -> u64 {
+        img.data
+            .iter()
+            .flatten()
+            .fold(0xcbf2_9ce4_8422_2325u64, |h, v| (h ^ v.to_bits() as u64).wrapping_mul(0x100_0000_01b3))
+    }
+
+    /// The renders of the code before the shared tube anchors (`YarnCurve::anchor`: one curve
+    /// search per vertex and per tube a shadow ray meets, instead of one per question), to the
+    /// bit: the hashes were taken from that code (session 12) for a round-yarn twill under the
+    /// default rig, and flattened yarns with flyaway fibres lit front and back (every shadow ray
+    /// into a vertex's own tube, between plies, through a flattened tube, past a hair). A change
+    /// of the renderer's arithmetic or random streams changes them; a pure speed-up must not.
+    /// The hashes are of an x86-64 Linux build (glibc's `sinf`/`cosf`); a libm that rounds a
+    /// last bit differently changes them without any change here: then take them again from
+    /// commit d91f2f6 (the code before the anchors) on that platform.
+    #[test]
+    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
+    fn the_anchored_tracer_renders_the_pre_anchor_images_to_the_bit() {
+        let round = ClothParams::preset("twill22").unwrap();
+        let scene = Scene { width: 24, height: 20, spp: 2, ..Scene::default() };
+        let mut flat = round.clone();
+        flat.shape = crate::geometry::yarn::YarnShape { crossing: 0.5, aspect: 0.5 };
+        flat.hair = crate::geometry::hair::Hair { density: 2.0, length: 6.0, radius: 0.12 };
+        let both = Scene { lights: crate::scene::LightRig::named("both").unwrap(), ..scene.clone() };
+        let opts = RenderOptions { threads: Some(1), ..Default::default() };
+        let got = [image_hash(&render(&round, &scene, &opts)), image_hash(&render(&flat, &both, &opts))];
+        assert_eq!(got, [17_396_025_342_954_943_802, 2_507_361_471_051_459_545]);
+    }
 }
