@@ -150,7 +150,10 @@ pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, 
 ///    corners, outweigh the silhouettes), and the model fold of step 3 then put the crops of the
 ///    own multi-repeat renders a quarter cell off, every pattern candidate with them;
 ///    `use_holes = false` turns this step off;
-/// 3. the model's fold ([`cell_phase`] against `model`, a render of any cloth on the grid).
+/// 3. the model's fold ([`cell_phase_given`] against `model`, a render of any cloth on the grid),
+///    searched only along the axes steps 1 and 2 leave open, the others held where those put
+///    them: searched over both axes at once, its best on the FabricNET plain W044 sat half a cell
+///    off along the x the edges had settled and took y 6 of 16 px off with it.
 pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool) -> (i32, i32) {
     let ((bx, by), (sx, sy)) = boundary_phase(image, c);
     let strong = (sx >= BOUNDARY_MIN_STRENGTH, sy >= BOUNDARY_MIN_STRENGTH);
