@@ -79,17 +79,14 @@ pub(crate) fn yarn_pixels(ev: &Evaluator, cache: &PathCache, p: &crate::pattern:
     keep
 }
 
-/// Per-channel median colour of `img` at the pixels `idx` (zero if none).
+/// Per-channel median colour of `img` at the pixels `idx` (zero if none): the evaluation's
+/// nearest-rank median (`fit::report::quantile` at ½).
 fn median_colour(img: &Image, idx: impl Iterator<Item = usize>) -> [f32; 3] {
     let px: Vec<[f32; 3]> = idx.map(|k| img.data[k]).collect();
-    std::array::from_fn(|ch| {
-        let mut v: Vec<f32> = px.iter().map(|p| p[ch]).collect();
-        if v.is_empty() {
-            return 0.0;
-        }
-        let mid = v.len() / 2;
-        *v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
-    })
+    if px.is_empty() {
+        return [0.0; 3];
+    }
+    std::array::from_fn(|ch| super::report::quantile(&px.iter().map(|p| p[ch]).collect::<Vec<f32>>(), 0.5))
 }
 
 /// Body colours: per channel a two-point affine fit of the rendered family means of each yarn
