@@ -198,6 +198,37 @@ pub(crate) fn best_variant<T: Clone>(
     best
 }
 
+/// The lowest-loss pattern of each weave class (plain, twill, satin, basket, other) among
+/// `patterns`, each set into `base` and scored by `loss`; sorted by loss. The finish takes one
+/// rival of every class from the candidates rather than their single best, so that the class is
+/// decided by the same appearance descent and criterion for all of them and not by which of two
+/// close candidates a cheap trace at the incumbent's appearance happened to put first.
+pub(crate) fn best_of_each_class(
+    ev: &Evaluator,
+    base: &ClothParams,
+    patterns: impl IntoIterator<Item = WeavePattern>,
+    loss: impl Fn(&Evaluator, &mut ClothParams) -> f32,
+    stop: &AtomicBool,
+) -> Vec<(f32, WeavePattern)> {
+    let mut best: Vec<(crate::pattern::WeaveClass, f32, WeavePattern)> = Vec::new();
+    for p in patterns {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        let class = p.weave_class();
+        let mut cand = base.clone();
+        cand.pattern = p.clone();
+        let l = loss(ev, &mut cand);
+        match best.iter_mut().find(|b| b.0 == class) {
+            Some(b) if l < b.1 => *b = (class, l, p),
+            Some(_) => {}
+            None => best.push((class, l, p)),
+        }
+    }
+    best.sort_by(|a, b| a.1.total_cmp(&b.1));
+    best.into_iter().map(|(_, l, p)| (l, p)).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -271,8 +302,29 @@ mod tests {
         let after = greedy_sweeps(&ev, &mut swept, 3, &stop, ones);
         assert!(after < before && !swept.pattern.has_unbound_yarn(), "{before} -> {after}");
         assert_eq!(after, ones(&ev, &mut swept));
+        // One per class, the lowest of each, sorted by loss: on a 4×4 grid the plain (2 ones a
+        // line… 8 in all), the basket (8), the twills (3/1 back: 4 ones) and the crowfoot satin.
+        let per_class = best_of_each_class(&ev, &cloth, cands.clone(), ones, &stop);
+        let classes: Vec<_> = per_class.iter().map(|(_, p)| p.weave_class()).collect();
+        for (l, p) in &per_class {
+            let same: Vec<&WeavePattern> = cands.iter().filter(|q| q.weave_class() == p.weave_class()).collect();
+            let mut c = cloth.clone();
+            c.pattern = p.clone();
+            assert_eq!(ones(&ev, &mut c), *l);
+            assert!(same.iter().all(|q| {
+                let mut c = cloth.clone();
+                c.pattern = (*q).clone();
+                ones(&ev, &mut c) >= *l
+            }));
+        }
+        assert!(per_class.windows(2).all(|w| w[0].0 <= w[1].0));
+        let distinct: std::collections::HashSet<_> = classes.iter().collect();
+        assert_eq!(distinct.len(), classes.len());
+        assert!(classes.len() >= 3, "{classes:?}");
+        assert_eq!(per_class[0].0, l);
         // A stop flag set beforehand: nothing is scanned.
         stop.store(true, Ordering::Relaxed);
-        assert!(best_variant(&ev, &cloth, cands, |c, p| c.pattern = p, ones, &stop).is_none());
+        assert!(best_variant(&ev, &cloth, cands.clone(), |c, p| c.pattern = p, ones, &stop).is_none());
+        assert!(best_of_each_class(&ev, &cloth, cands, ones, &stop).is_empty());
     }
 }

@@ -1,10 +1,10 @@
 //! Finish of the joint runs: the annealed best against the rivals the annealer's small steps could
 //! not reach (the other runs, the starts, the warmed-up candidates, the best whole-pattern
-//! candidate re-ranked, an `n_p`/`n_f` scan, the inverted twin), each with the same appearance
+//! candidate of each weave class re-ranked, an `n_p`/`n_f` scan, the inverted twin), each with the same appearance
 //! descent, the close calls among them with radius rounds too (the run-off); then single-cell
 //! contests; then the winner's appearance restarts and polish, last at `fine_spp`.
 
-use super::candidates::{best_variant, candidate_patterns, inverted_twin, toggled_cell};
+use super::candidates::{best_of_each_class, best_variant, candidate_patterns, inverted_twin, toggled_cell};
 use super::evaluator::{state_loss, Evaluator};
 use super::joint::JointRuns;
 use super::options::FinishOptions;
@@ -142,7 +142,7 @@ fn runoff(
 
 /// `best` and its rivals: `others` (each with its own appearance: a pattern's inverse comes with
 /// swapped colours), then, with the best's converged appearance, the best whole-pattern
-/// candidate re-ranked on `quick`, an `n_p`/`n_f` scan and the inverted twin. No two share their
+/// candidate of each weave class re-ranked on `quick`, an `n_p`/`n_f` scan and the inverted twin. No two share their
 /// discrete state.
 fn rivals(st: &Stage, quick: &Evaluator, best: &ClothParams, others: &[ClothParams]) -> Vec<ClothParams> {
     let stop = &*st.control.stop;
@@ -157,11 +157,12 @@ fn rivals(st: &Stage, quick: &Evaluator, best: &ClothParams, others: &[ClothPara
     if st.cells {
         let cands =
             candidate_patterns(quick, n_e, n_a, st.render.px_per_cell).into_iter().chain([best.pattern.clone()]);
-        let top = best_variant(quick, best, cands, |cl, p| cl.pattern = p, state_loss, stop);
-        if let Some((_, p)) = top.filter(|(_, p)| finals.iter().all(|f| f.pattern != *p)) {
-            let mut c2 = best.clone();
-            c2.pattern = p;
-            finals.push(c2);
+        for (_, p) in best_of_each_class(quick, best, cands, state_loss, stop) {
+            if finals.iter().all(|f| f.pattern != p) {
+                let mut c2 = best.clone();
+                c2.pattern = p;
+                finals.push(c2);
+            }
         }
     }
     // n_p and n_f scanned over Table 1 with the converged appearance (the annealer moves them
