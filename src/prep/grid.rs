@@ -329,22 +329,29 @@ pub fn analyze_axis_superposed(g: &Gray, axis_x: bool, min_pitch: f64) -> Option
 pub fn analyze_axis_banded(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<(AxisGrid, Vec<f64>)> {
     let raw = profile(g, axis_x);
     let n = raw.len();
-    let mut best: Option<(f64, f64, Gray, Vec<f64>, Vec<f64>)> = None;
-    let mut w = 8.0f64;
-    while w <= n as f64 / 3.0 {
-        let level = running_median(&raw, w.round() as usize);
+    // The flattened image and its profile at a window (recomputed for the winner: cheap).
+    let at = |w: usize| {
+        let level = running_median(&raw, w);
         let flat = divide_lines(g, axis_x, &level);
         let mut p = profile(&flat, axis_x);
         detrend(&mut p);
+        (level, flat, p)
+    };
+    // (pitch, strength, window) of the strongest self-consistent window.
+    let mut best: Option<(f64, f64, usize)> = None;
+    let mut w = 8.0f64;
+    while w <= n as f64 / 3.0 {
+        let (_, _, p) = at(w.round() as usize);
         if let Some((pitch, strength)) = pitch_from_profile(&p, min_pitch) {
             let consistent = (1.5 * pitch..=3.0 * pitch).contains(&w);
-            if consistent && best.as_ref().is_none_or(|b| strength > b.1) {
-                best = Some((pitch, strength, flat, p, level));
+            if consistent && best.is_none_or(|b| strength > b.1) {
+                best = Some((pitch, strength, w.round() as usize));
             }
         }
         w *= 1.25;
     }
-    let (pitch_ac, strength, flat, p, level) = best?;
+    let (pitch_ac, strength, window) = best?;
+    let (level, flat, p) = at(window);
     Some((axis_grid(&flat, axis_x, &p, pitch_ac, strength, min_pitch), level))
 }
 
