@@ -309,6 +309,84 @@ pub fn analyze_axis_superposed(g: &Gray, axis_x: bool, min_pitch: f64) -> Option
     Some(axis_grid(g, axis_x, &p, pitch_ac, strength, min_pitch))
 }
 
+/// Like [`analyze_axis`], but every line is first divided by the running *median* of the
+/// profile ([`running_median`]), which removes colour bands, at the window that the pitch it finds
+/// makes self-consistent (see below). Used when neither projection is periodic enough.
+///
+/// Why: a yarn-dyed stripe or check is a step of colour across many yarns, not structure. In an
+/// integral projection a band of another colour is a step far larger than the yarns' ripple
+/// (FabricNET W022 and W025: a cream band across a blue/cream plain; the row profile's
+/// autocorrelation decays without a peak, strength 0.27 or none, and the photo was refused as
+/// "no regular grid of yarns"). A running median follows a step exactly and passes under a ripple
+/// whose period is shorter than its window, so `p / median_W(p)` keeps the yarns and drops the
+/// bands (unlike a linear high-pass, which turns each step into a blip one window wide); the
+/// division (not a difference) removes the band from the log-luminance edges as well. The
+/// window must hold more than one yarn and less than a band: windows `W` from 8 px up to a third
+/// of the extent (factors of 1.25) are tried, and a pitch `p` found with `W` counts only when the
+/// window spans 1.5–3 yarns (`1.5 p ≤ W ≤ 3 p`) — a few yarns, whatever the zoom. The strongest
+/// self-consistent one wins; it is returned with the band level (the running median of the
+/// profile, for [`divide_lines`]). `None` when no window gives one.
+pub fn analyze_axis_banded(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<(AxisGrid, Vec<f64>)> {
+    let raw = profile(g, axis_x);
+    let n = raw.len();
+    // The flattened image and its profile at a window (recomputed for the winner: cheap).
+    let at = |w: usize| {
+        let level = running_median(&raw, w);
+        let flat = divide_lines(g, axis_x, &level);
+        let mut p = profile(&flat, axis_x);
+        detrend(&mut p);
+        (level, flat, p)
+    };
+    // (pitch, strength, window) of the strongest self-consistent window.
+    let mut best: Option<(f64, f64, usize)> = None;
+    let mut w = 8.0f64;
+    while w <= n as f64 / 3.0 {
+        let (_, _, p) = at(w.round() as usize);
+        if let Some((pitch, strength)) = pitch_from_profile(&p, min_pitch) {
+            let consistent = (1.5 * pitch..=3.0 * pitch).contains(&w);
+            if consistent && best.is_none_or(|b| strength > b.1) {
+                best = Some((pitch, strength, w.round() as usize));
+            }
+        }
+        w *= 1.25;
+    }
+    let (pitch_ac, strength, window) = best?;
+    let (level, flat, p) = at(window);
+    Some((axis_grid(&flat, axis_x, &p, pitch_ac, strength, min_pitch), level))
+}
+
+/// `g` with every line across `axis_x` (a column for `axis_x`, a row otherwise) divided by
+/// `level[i]`, the band level at its position `i` along the axis: a yarn-dyed band scales the
+/// brightness of both yarn families, so dividing by the level removes its step from the profile
+/// and from the log-luminance edges (`edge_energy`) alike.
+pub fn divide_lines(g: &Gray, axis_x: bool, level: &[f64]) -> Gray {
+    let floor = level.iter().cloned().fold(0.0f64, f64::max) * 1e-3 + 1e-9;
+    let mut out = g.clone();
+    for (k, v) in out.data.iter_mut().enumerate() {
+        let i = if axis_x { k % g.w } else { k / g.w };
+        *v = (*v as f64 / level[i].max(floor)) as f32;
+    }
+    out
+}
+
+/// The running median of `p`: the median of the `window` samples centred on each sample (the
+/// window truncated at the ends). It follows a step (the edge of a colour band) exactly and
+/// passes under a ripple shorter than the window, so `p − median` or `p / median` keeps the
+/// yarns and drops the bands; a linear low-pass would spread each step over a window.
+pub fn running_median(p: &[f64], window: usize) -> Vec<f64> {
+    let n = p.len();
+    let half = window / 2;
+    let mut buf = Vec::with_capacity(window + 1);
+    (0..n)
+        .map(|i| {
+            buf.clear();
+            buf.extend_from_slice(&p[i.saturating_sub(half)..(i + half + 1).min(n)]);
+            let m = buf.len() / 2;
+            *buf.select_nth_unstable_by(m, f64::total_cmp).1
+        })
+        .collect()
+}
+
 /// First pitch and periodicity strength from the mean of the per-line autocorrelations: every
 /// row (`axis_x = true`) or column, mean removed, autocorrelated on its own, the correlations
 /// summed (the superposed DMF of [`super::period::dmf_rows`], `ρ(d) = 1 − D(d)/(2 var)`), then
@@ -696,5 +774,48 @@ mod tests {
             let got = pitch_from_line_shift(&hairy_floats(0.4, 7.0, false, seed), true, &weft, 4.0);
             assert_eq!(got, None, "seed {seed}");
         }
+    }
+
+    #[test]
+    fn a_stripe_does_not_hide_the_yarns() {
+        use crate::prep::image_ops::blur_gray;
+        // Wefts of 14 px, a band 40 % of the height 4× as bright (a cream stripe across a dark
+        // plain): the row profile is the band's step, its autocorrelation has no peak reaching
+        // the structure floor 0.35, neither as an integral projection nor line by line.
+        for (k, &(band, gain, py)) in
+            [((0.3, 0.7), 4.0f32, 14.0), ((0.15, 0.5), 5.0, 12.0), ((0.4, 0.85), 5.0, 17.0)].iter().enumerate()
+        {
+            let img = crate::prep::testutil::striped_plain([19.0, py], 320, 240, band, gain, 0.3);
+            let g = blur_gray(&Gray::from_rgb(&img), 1.0);
+            let proj = analyze_axis(&g, false, 4.0).map_or(0.0, |a| a.strength);
+            let sup = analyze_axis_superposed(&g, false, 4.0).map_or(0.0, |a| a.strength);
+            assert!(proj < 0.35 && sup < 0.35, "case {k}: the test image is not hard ({proj:.2}, {sup:.2})");
+            // With the bands removed by the running median, the wefts' pitch and boundaries.
+            let (a, _) = analyze_axis_banded(&g, false, 4.0).expect("banded pitch");
+            assert!(a.strength >= 0.35, "case {k}: strength {:.2}", a.strength);
+            assert!((a.pitch as f64 / py - 1.0).abs() < 0.03, "case {k}: pitch {} for {py}", a.pitch);
+            // Boundaries lie at the image centre plus whole pitches (`render_texture_rotated`).
+            let off = ((a.phase as f64 - 120.0) / py).rem_euclid(1.0);
+            assert!(off.min(1.0 - off) < 0.1, "case {k}: boundary at {} px, off the lattice 120 + {py} k", a.phase);
+        }
+    }
+
+    #[test]
+    fn the_running_median_removes_steps_and_keeps_ripples() {
+        // A step of 5 plus a ripple of amplitude 1 and period 10: with a window of 25 the step
+        // is gone (residual within twice the ripple's amplitude at the step) and away from the
+        // step the ripple is kept.
+        let p: Vec<f64> = (0..200)
+            .map(|i| if i >= 100 { 5.0 } else { 0.0 } + (std::f64::consts::TAU * i as f64 / 10.0).sin())
+            .collect();
+        let q: Vec<f64> = p.iter().zip(running_median(&p, 25)).map(|(a, m)| a - m).collect();
+        assert!(q.iter().all(|v| v.abs() <= 2.0), "{:?}", &q[90..110]);
+        let ripple: Vec<f64> = (0..200).map(|i| (std::f64::consts::TAU * i as f64 / 10.0).sin()).collect();
+        let err = q.iter().zip(&ripple).skip(15).take(70).map(|(a, b)| (a - b).abs()).fold(0.0f64, f64::max);
+        assert!(err < 0.35, "ripple changed by {err:.2}");
+        // A linear high-pass (the mean over the same window) leaves the step as a blip of ±2.5
+        // on top of the ripple.
+        let mean_res = (100 - 12..100 + 12).map(|i| p[i] - p[i - 12..=i + 12].iter().sum::<f64>() / 25.0);
+        assert!(mean_res.map(f64::abs).fold(0.0, f64::max) > 3.0);
     }
 }

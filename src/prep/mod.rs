@@ -315,20 +315,39 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     let min_pitch = opts.min_pitch as f64;
     // An axis whose integral projection is not periodic (twills, satins: see
     // `grid::superposed_pitch`) gets its first pitch from the per-line autocorrelations instead.
-    let axis0 = |axis_x: bool| -> Option<AxisGrid> {
+    // The band level of an axis whose grid was found only with its colour bands divided out
+    // (`grid::analyze_axis_banded`): the later steps see the image with those bands removed too.
+    let axis0 = |axis_x: bool| -> Option<(AxisGrid, Option<Vec<f64>>)> {
         let a = analyze_axis(&gb, axis_x, min_pitch);
         if a.as_ref().is_some_and(|a| a.strength >= opts.min_structure) {
-            return a;
+            return a.map(|a| (a, None));
         }
-        match (a, grid::analyze_axis_superposed(&gb, axis_x, min_pitch)) {
+        let best = match (a, grid::analyze_axis_superposed(&gb, axis_x, min_pitch)) {
             (Some(a), Some(b)) => Some(if b.strength > a.strength { b } else { a }),
             (a, b) => a.or(b),
+        };
+        if best.as_ref().is_some_and(|a| a.strength >= opts.min_structure) {
+            return best.map(|a| (a, None));
+        }
+        // Still no periodic profile: a yarn-dyed stripe or check may hide the yarns under its
+        // colour steps (`grid::analyze_axis_banded` divides them out with a running median).
+        match (best, grid::analyze_axis_banded(&gb, axis_x, min_pitch)) {
+            (Some(a), Some((b, level))) if b.strength > a.strength => Some((b, Some(level))),
+            (None, Some((b, level))) => Some((b, Some(level))),
+            (a, _) => a.map(|a| (a, None)),
         }
     };
-    let mut ax0 = axis0(true).ok_or(PrepError::NoStructure)?;
-    let mut ay0 = axis0(false).ok_or(PrepError::NoStructure)?;
+    let (mut ax0, band_x) = axis0(true).ok_or(PrepError::NoStructure)?;
+    let (mut ay0, band_y) = axis0(false).ok_or(PrepError::NoStructure)?;
     if ax0.strength < opts.min_structure || ay0.strength < opts.min_structure {
         return Err(PrepError::NoStructure);
+    }
+    let (mut g, mut gb) = (g, gb);
+    for (axis_x, level) in [(true, band_x), (false, band_y)] {
+        if let Some(level) = level {
+            g = grid::divide_lines(&g, axis_x, &level);
+            gb = grid::divide_lines(&gb, axis_x, &level);
+        }
     }
     // A pitch that spans several yarns (a float's or a repeat's length on twills and satins) is
     // replaced by the one the shifts between the lines of the other family give
@@ -794,6 +813,19 @@ mod tests {
         let ov = diagnostic_overlay(&uni, &PrepOptions::default()).unwrap();
         assert!(ov.pixels().all(|p| (p.0[1] - 0.5).abs() < 1e-3), "no red line on a uniform image");
         assert!(diagnostic_overlay(&Rgb32FImage::new(8, 8), &PrepOptions::default()).is_none());
+    }
+
+    #[test]
+    fn a_plain_under_a_wide_stripe_is_prepared() {
+        // A cream band over 40 % of a dark plain of soft yarns: the row profile is the band's
+        // step (refused as "no regular grid of yarns" before `grid::analyze_axis_banded`).
+        for (band, gain) in [((0.3, 0.7), 4.0f32), ((0.15, 0.5), 5.0)] {
+            let img = striped_plain([19.0, 14.0], 320, 240, band, gain, 0.3);
+            let pr = prepare(&img, &opts_no_persp()).unwrap_or_else(|e| panic!("{band:?}: {e}"));
+            let msg = pr.to_json();
+            assert!((pr.pitch_y / 14.0 - 1.0).abs() < 0.03 && (pr.pitch_x / 19.0 - 1.0).abs() < 0.03, "{msg}");
+            assert_eq!((pr.n_e, pr.n_a), (2, 2), "{msg}");
+        }
     }
 
     #[test]

@@ -139,3 +139,25 @@ pub fn render_texture_rotated(
         tex(tx / pitch[0], ty / pitch[1])
     })
 }
+
+/// A plain weave of soft (hairy) yarns, yarn-dyed in a wide band (a stripe): inside the
+/// band `(start, end)` (fractions of the height) both yarn families are `gain` times as
+/// bright. The procedural yarns' contrast is scaled by `contrast` around the level 0.3.
+/// Axis-aligned, pitch `[x, y]` px.
+pub fn striped_plain(
+    pitch: [f64; 2],
+    w: u32,
+    h: u32,
+    band: (f64, f64),
+    gain: f32,
+    contrast: f32,
+) -> image::Rgb32FImage {
+    let p = plain();
+    let mut img = render_texture_rotated(pitch, w, h, 0.0, |tx, ty| texture(&p, tx, ty));
+    for (_, y, px) in img.enumerate_pixels_mut() {
+        let f = y as f64 / h as f64;
+        let g = if f >= band.0 && f < band.1 { gain } else { 1.0 };
+        px.0.iter_mut().for_each(|v| *v = g * (0.3 + contrast * (*v - 0.3)));
+    }
+    img
+}
