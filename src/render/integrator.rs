@@ -182,6 +182,11 @@ fn bits(v: Vec3) -> [u32; 3] {
     v.to_array().map(f32::to_bits)
 }
 
+/// Key of an exit query: yarn, anchor point, anchor centre, anchor tangent, direction (bits).
+type ExitKey = (usize, [u32; 3], [u32; 3], [u32; 3], [u32; 3]);
+/// Key of a closest-hit query: origin, direction, skip (bits).
+type HitKey = ([u32; 3], [u32; 3], Option<(usize, u32)>);
+
 /// The two geometric queries of a path's MIS shadow ray that the path itself asks again, kept
 /// with the exact inputs they were answered for. A refraction sample at x is one of the MIS
 /// strategies ([`Tracer::strategy_hits`]): its shadow ray into the own tube asks for the exit
@@ -193,17 +198,17 @@ fn bits(v: Vec3) -> [u32; 3] {
 #[derive(Default)]
 struct LegMemo {
     /// `(yarn, anchor point, anchor centre, anchor tangent, direction)` and the exit distance.
-    exit: Option<((usize, [u32; 3], [u32; 3], [u32; 3], [u32; 3]), f32)>,
+    exit: Option<(ExitKey, f32)>,
     /// `(origin, direction, skip)` and the closest tube hit.
-    first: Option<(([u32; 3], [u32; 3], Option<(usize, u32)>), Option<TubeHit>)>,
+    first: Option<(HitKey, Option<TubeHit>)>,
 }
 
 impl LegMemo {
-    fn exit_key(yarn: usize, anchor: &Anchor, d: Vec3) -> (usize, [u32; 3], [u32; 3], [u32; 3], [u32; 3]) {
+    fn exit_key(yarn: usize, anchor: &Anchor, d: Vec3) -> ExitKey {
         (yarn, bits(anchor.q), bits(anchor.frame.c), bits(anchor.frame.t), bits(d))
     }
 
-    fn first_key(o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> ([u32; 3], [u32; 3], Option<(usize, u32)>) {
+    fn first_key(o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> HitKey {
         (bits(o), bits(d), skip.map(|(y, t)| (y, t.to_bits())))
     }
 

@@ -285,7 +285,8 @@ mod tests {
         // re-shaded at an appearance away from the sampling one: every value and all 30 partials
         // equal to the 30-partial refraction's (`==`: a zero's sign may differ, nothing else).
         let cloth = ClothParams::preset("twill22").unwrap();
-        let scene = Scene { width: 20, height: 16, spp: 2, lights: LightRig::named("both").unwrap(), ..Scene::default() };
+        let scene =
+            Scene { width: 20, height: 16, spp: 2, lights: LightRig::named("both").unwrap(), ..Scene::default() };
         let cache = Prepared::new(&cloth, &scene, &RenderOptions { threads: Some(1), ..Default::default() })
             .record(&cloth.appearance);
         let mut x = cloth.appearance.to_vec();
