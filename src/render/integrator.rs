@@ -621,3 +621,47 @@ impl Tracer<'_> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::yarn::YarnSet;
+    use crate::pattern::WeavePattern;
+
+    fn tile(name: &str, r: f32) -> TileGeometry {
+        TileGeometry::new(YarnSet::new(&WeavePattern::preset(name).unwrap(), r, r))
+    }
+
+    #[test]
+    fn the_leg_memo_answers_only_a_query_equal_to_the_bit() {
+        // Two geometries that answer the same ray differently: a memo filled on the first
+        // answers an equal query with the first answer (no re-trace), and traces afresh when the
+        // origin, the direction or the skip differs by a bit (−0.0 against 0.0 included).
+        let (a, b) = (tile("twill22", 4.0), tile("plain", 3.0));
+        let (o, d) = (Vec3::new(0.0, 7.3, 20.0), Vec3::new(0.2, 0.1, -1.0).normalize());
+        let (ha, hb) = (a.closest(o, d, None).unwrap(), b.closest(o, d, None).unwrap());
+        assert_ne!(ha.t.to_bits(), hb.t.to_bits());
+        let mut m = LegMemo::default();
+        assert_eq!(m.closest(&a, o, d, None).unwrap().t.to_bits(), ha.t.to_bits());
+        assert_eq!(m.closest(&b, o, d, None).unwrap().t.to_bits(), ha.t.to_bits(), "answered from the memo");
+        let o_neg = Vec3::new(-0.0, 7.3, 20.0);
+        assert_eq!(m.closest(&b, o_neg, d, None).unwrap().t.to_bits(), b.closest(o_neg, d, None).unwrap().t.to_bits());
+        let skip = Some((ha.yarn, 1e-2));
+        assert_eq!(
+            m.closest(&a, o_neg, d, skip).map(|h| h.t.to_bits()),
+            a.closest(o_neg, d, skip).map(|h| h.t.to_bits())
+        );
+        // The exit chord likewise, keyed on the yarn, the anchor and the direction.
+        let y = &a.set.yarns[0];
+        let f = y.frame(3.0);
+        let anchor = y.anchor(f.c + f.ey * (y.radius - 1e-3));
+        let (d1, d2) = ((-f.ey + f.ex * 0.3).normalize(), (-f.ey + f.t * 0.8).normalize());
+        let (e1, e2) = (a.exit_tube_at(0, &anchor, d1), a.exit_tube_at(0, &anchor, d2));
+        assert_ne!(e1.to_bits(), e2.to_bits());
+        assert_eq!(m.exit(&a, 0, &anchor, d1).to_bits(), e1.to_bits());
+        assert_eq!(m.exit(&a, 0, &anchor, d1).to_bits(), e1.to_bits());
+        assert_eq!(m.exit(&a, 0, &anchor, d2).to_bits(), e2.to_bits());
+        let far = y.anchor(f.c + f.ex * (y.radius - 1e-2));
+        assert_eq!(m.exit(&a, 0, &far, d2).to_bits(), a.exit_tube_at(0, &far, d2).to_bits());
+    }
+}
