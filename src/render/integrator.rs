@@ -7,7 +7,7 @@
 use super::camera::Camera;
 use super::lights::{Light, LightSample};
 use crate::geometry::ply::PlyModel;
-use crate::geometry::tile::TileGeometry;
+use crate::geometry::tile::{TileGeometry, TubeHit};
 use crate::geometry::yarn::{Anchor, Family};
 use crate::params::Appearance;
 use crate::shading::bysdf::VertexKind;
@@ -176,6 +176,71 @@ enum Surface {
     Hair { id: usize },
 }
 
+/// Bit pattern of a vector, for exact-equality keys (`==` on floats would equate `0.0` and
+/// `−0.0`, whose traces may differ in the last bit).
+fn bits(v: Vec3) -> [u32; 3] {
+    v.to_array().map(f32::to_bits)
+}
+
+/// Key of an exit query: yarn, anchor point, anchor centre, anchor tangent, direction (bits).
+type ExitKey = (usize, [u32; 3], [u32; 3], [u32; 3], [u32; 3]);
+/// Key of a closest-hit query: origin, direction, skip (bits).
+type HitKey = ([u32; 3], [u32; 3], Option<(usize, u32)>);
+
+/// The two geometric queries of a path's MIS shadow ray that the path itself asks again, kept
+/// with the exact inputs they were answered for. A refraction sample at x is one of the MIS
+/// strategies ([`Tracer::strategy_hits`]): its shadow ray into the own tube asks for the exit
+/// distance along the refracted direction, the chord the path then needs to place y. At y the
+/// refraction out of the tube is the shadow ray's direction and the next path segment's: both
+/// start at `y + ε·n_t` with the own yarn skipped, so the path's next closest hit is the shadow
+/// ray's first. The memo answers the second asking with the first answer when the inputs are
+/// equal to the bit, so renders stay the same to the bit (a query is a pure function of them).
+#[derive(Default)]
+struct LegMemo {
+    /// `(yarn, anchor point, anchor centre, anchor tangent, direction)` and the exit distance.
+    exit: Option<(ExitKey, f32)>,
+    /// `(origin, direction, skip)` and the closest tube hit.
+    first: Option<(HitKey, Option<TubeHit>)>,
+}
+
+impl LegMemo {
+    fn exit_key(yarn: usize, anchor: &Anchor, d: Vec3) -> ExitKey {
+        (yarn, bits(anchor.q), bits(anchor.frame.c), bits(anchor.frame.t), bits(d))
+    }
+
+    fn first_key(o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> HitKey {
+        (bits(o), bits(d), skip.map(|(y, t)| (y, t.to_bits())))
+    }
+
+    /// [`TileGeometry::exit_tube_at`], answered from the memo when asked before with the same
+    /// inputs, and remembered otherwise.
+    fn exit(&mut self, geom: &TileGeometry, yarn: usize, anchor: &Anchor, d: Vec3) -> f32 {
+        let key = Self::exit_key(yarn, anchor, d);
+        if let Some((k, t)) = self.exit {
+            if k == key {
+                return t;
+            }
+        }
+        let t = geom.exit_tube_at(yarn, anchor, d);
+        self.exit = Some((key, t));
+        t
+    }
+
+    /// [`TileGeometry::closest`], answered from the memo when asked before with the same inputs,
+    /// and remembered otherwise.
+    fn closest(&mut self, geom: &TileGeometry, o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> Option<TubeHit> {
+        let key = Self::first_key(o, d, skip);
+        if let Some((k, hit)) = self.first {
+            if k == key {
+                return hit;
+            }
+        }
+        let hit = geom.closest(o, d, skip);
+        self.first = Some((key, hit));
+        hit
+    }
+}
+
 /// Deterministic per-sample random numbers.
 pub fn sample_rng(seed: u64, pixel: u64, sample: u64) -> SmallRng {
     let mut h = seed ^ 0x9E37_79B9_7F4A_7C15;
@@ -198,7 +263,18 @@ impl Tracer<'_> {
     /// a ply and otherwise leaves through the far wall; from a hair, the ray leaves the fibre
     /// (a hair does not shadow itself). Hairs on the way block the ray: a fibre is opaque to
     /// shadow rays, as a ply is.
-    fn visible(&self, surface: Surface, pw: Vec3, nt: Vec3, dir: Vec3, max_dist: f32) -> bool {
+    ///
+    /// With `memo`, the exit from the own tube and the first closest hit are asked through it
+    /// (`LegMemo`: the path may ask them again).
+    fn visible(
+        &self,
+        surface: Surface,
+        pw: Vec3,
+        nt: Vec3,
+        dir: Vec3,
+        max_dist: f32,
+        mut memo: Option<&mut LegMemo>,
+    ) -> bool {
         let mut start = pw;
         let mut travelled = 0.0;
         let mut skip = match surface {
@@ -212,15 +288,22 @@ impl Tracer<'_> {
                 if self.plies.blocks_at(own, &anchor, dir) {
                     return false;
                 }
-                let te = self.geom.exit_tube_at(yarn, &anchor, dir);
+                let te = match memo.as_deref_mut() {
+                    Some(m) => m.exit(self.geom, yarn, &anchor, dir),
+                    None => self.geom.exit_tube_at(yarn, &anchor, dir),
+                };
                 start = pw + dir * (te + EPS);
                 travelled = te + EPS;
             }
             Surface::Hair { .. } if dir.dot(nt) < 0.0 => start += dir * EPS,
             _ => start += nt * EPS,
         }
-        for _ in 0..32 {
-            let Some(hit) = self.geom.closest(start, dir, skip) else { return true };
+        for leg in 0..32 {
+            let hit = match memo.as_deref_mut() {
+                Some(m) if leg == 0 => m.closest(self.geom, start, dir, skip),
+                _ => self.geom.closest(start, dir, skip),
+            };
+            let Some(hit) = hit else { return true };
             if travelled + hit.t >= max_dist {
                 return true;
             }
@@ -279,7 +362,7 @@ impl Tracer<'_> {
                 continue;
             }
             let l = frame.to_local(ls.dir);
-            if l.z == 0.0 || !self.visible(surface, pw, st.nt, ls.dir, ls.dist) {
+            if l.z == 0.0 || !self.visible(surface, pw, st.nt, ls.dir, ls.dist, None) {
                 continue;
             }
             let mis = match light.mis_pdf(l.z) {
@@ -301,6 +384,7 @@ impl Tracer<'_> {
         dir: Vec3,
         st: &Strategies,
         out: &mut Vec<LightHit>,
+        memo: &mut LegMemo,
     ) -> u32 {
         let (surface, pw) = at;
         let dw = frame.to_world(dir);
@@ -313,7 +397,7 @@ impl Tracer<'_> {
             if le.iter().all(|&x| x <= 0.0) || p_l + p_own <= 0.0 {
                 continue;
             }
-            if !*visible.get_or_insert_with(|| self.visible(surface, pw, st.nt, dw, f32::INFINITY)) {
+            if !*visible.get_or_insert_with(|| self.visible(surface, pw, st.nt, dw, f32::INFINITY, Some(&mut *memo))) {
                 return n;
             }
             let w = 1.0 / (p_l + p_own);
@@ -357,7 +441,7 @@ impl Tracer<'_> {
         let mut lights = self.sample_lights(rng, here, xw, &frame, &st, out);
         let (r1, r2) = (rng.random::<f32>(), rng.random::<f32>());
         if let Some((rl, _)) = sample_reflection(v, alpha, r1, r2) {
-            lights.1 += self.strategy_hits((here, xw), &frame, rl, &st, out);
+            lights.1 += self.strategy_hits((here, xw), &frame, rl, &st, out, &mut LegMemo::default());
         }
         PathVertex {
             kind: VertexKind::X,
@@ -385,8 +469,10 @@ impl Tracer<'_> {
         let mut skip: Option<(usize, f32)> = None;
         let mut depth = 0;
         let mut gaps = 0;
+        // The MIS shadow rays' answers the path asks again (`LegMemo`).
+        let mut memo = LegMemo::default();
         while buf.verts.len() < MAX_VERTICES && gaps < 16 {
-            let Some(hit) = self.geom.closest(ray_o, ray_d, skip) else {
+            let Some(hit) = memo.closest(self.geom, ray_o, ray_d, skip) else {
                 if depth == 0 {
                     // A light seen through a gap is clipped to the display white per sample (a
                     // sensor clips per pixel, after integration; this is a deliberate deviation):
@@ -448,7 +534,7 @@ impl Tracer<'_> {
                 hair: false,
             };
             if let Some((rl, _)) = sample_reflection(v, alpha, r1, r2) {
-                vx.lights.1 += self.strategy_hits((here, xw), &frame, rl, &st, &mut buf.lights);
+                vx.lights.1 += self.strategy_hits((here, xw), &frame, rl, &st, &mut buf.lights, &mut memo);
             }
             if !self.transmission {
                 buf.verts.push(vx);
@@ -465,7 +551,7 @@ impl Tracer<'_> {
                 buf.verts.push(vx);
                 return;
             }
-            vx.lights.1 += self.strategy_hits((here, xw), &frame, tl, &st, &mut buf.lights);
+            vx.lights.1 += self.strategy_hits((here, xw), &frame, tl, &st, &mut buf.lights, &mut memo);
             if buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vx);
                 return;
@@ -473,7 +559,7 @@ impl Tracer<'_> {
             vx.refr = Some((tl, pdf));
             buf.verts.push(vx);
             // Exit point y: the far wall of the same tube along the refracted direction.
-            let chord = self.geom.exit_tube_at(hit.yarn, &anchor, tw);
+            let chord = memo.exit(self.geom, hit.yarn, &anchor, tw);
             let yt = hit.p + tw * chord;
             let yw = xw + tw * chord;
             let anchor_y = yarn.anchor(yt);
@@ -514,7 +600,7 @@ impl Tracer<'_> {
                 buf.verts.push(vyx);
                 return;
             }
-            vyx.lights.1 += self.strategy_hits((exit, yw), &fy, ol, &st, &mut buf.lights);
+            vyx.lights.1 += self.strategy_hits((exit, yw), &fy, ol, &st, &mut buf.lights, &mut memo);
             if buf.verts.len() + 1 >= MAX_VERTICES {
                 buf.verts.push(vyx);
                 return;
@@ -533,5 +619,49 @@ impl Tracer<'_> {
             ray_d = ow;
             skip = Some((hit.yarn, 1e-2));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::yarn::YarnSet;
+    use crate::pattern::WeavePattern;
+
+    fn tile(name: &str, r: f32) -> TileGeometry {
+        TileGeometry::new(YarnSet::new(&WeavePattern::preset(name).unwrap(), r, r))
+    }
+
+    #[test]
+    fn the_leg_memo_answers_only_a_query_equal_to_the_bit() {
+        // Two geometries that answer the same ray differently: a memo filled on the first
+        // answers an equal query with the first answer (no re-trace), and traces afresh when the
+        // origin, the direction or the skip differs by a bit (−0.0 against 0.0 included).
+        let (a, b) = (tile("twill22", 4.0), tile("plain", 3.0));
+        let (o, d) = (Vec3::new(0.0, 7.3, 20.0), Vec3::new(0.2, 0.1, -1.0).normalize());
+        let (ha, hb) = (a.closest(o, d, None).unwrap(), b.closest(o, d, None).unwrap());
+        assert_ne!(ha.t.to_bits(), hb.t.to_bits());
+        let mut m = LegMemo::default();
+        assert_eq!(m.closest(&a, o, d, None).unwrap().t.to_bits(), ha.t.to_bits());
+        assert_eq!(m.closest(&b, o, d, None).unwrap().t.to_bits(), ha.t.to_bits(), "answered from the memo");
+        let o_neg = Vec3::new(-0.0, 7.3, 20.0);
+        assert_eq!(m.closest(&b, o_neg, d, None).unwrap().t.to_bits(), b.closest(o_neg, d, None).unwrap().t.to_bits());
+        let skip = Some((ha.yarn, 1e-2));
+        assert_eq!(
+            m.closest(&a, o_neg, d, skip).map(|h| h.t.to_bits()),
+            a.closest(o_neg, d, skip).map(|h| h.t.to_bits())
+        );
+        // The exit chord likewise, keyed on the yarn, the anchor and the direction.
+        let y = &a.set.yarns[0];
+        let f = y.frame(3.0);
+        let anchor = y.anchor(f.c + f.ey * (y.radius - 1e-3));
+        let (d1, d2) = ((-f.ey + f.ex * 0.3).normalize(), (-f.ey + f.t * 0.8).normalize());
+        let (e1, e2) = (a.exit_tube_at(0, &anchor, d1), a.exit_tube_at(0, &anchor, d2));
+        assert_ne!(e1.to_bits(), e2.to_bits());
+        assert_eq!(m.exit(&a, 0, &anchor, d1).to_bits(), e1.to_bits());
+        assert_eq!(m.exit(&a, 0, &anchor, d1).to_bits(), e1.to_bits());
+        assert_eq!(m.exit(&a, 0, &anchor, d2).to_bits(), e2.to_bits());
+        let far = y.anchor(f.c + f.ex * (y.radius - 1e-2));
+        assert_eq!(m.exit(&a, 0, &far, d2).to_bits(), a.exit_tube_at(0, &far, d2).to_bits());
     }
 }
