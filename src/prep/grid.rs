@@ -263,6 +263,10 @@ pub const MIN_EDGE_CONFIDENCE: f64 = 0.08;
 /// cut in two).
 pub const MAX_FINE_CLASS_SPREAD: f64 = 0.35;
 
+/// Largest relative mismatch between `k` fine pitches and the coarse pitch they divide for a
+/// finer lattice taken from the edges alone (a pitch measured over ≥ 4 repeats is good to ≈ 1 %).
+pub const FINE_DIVIDES_TOL: f64 = 0.015;
+
 /// The yarn pitch among `pitch_ac` (the autocorrelation's first strong peak) and its whole
 /// fractions `pitch_ac / k`, with its [`edge_grid`] estimate. The intensity profile of paired yarns
 /// (basket), long floats or a two-colour random pattern repeats best at a multiple of the yarn
@@ -299,8 +303,13 @@ fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) 
         // Or the edge energy itself repeats at the candidate and the fine cells are alike in mean
         // brightness (not a yarn cut in two: see `fine_class_spread`). A 4-end crowfoot's weft rows
         // have the same mean but not the same profile, so its profile repeats only at two rows.
+        // The fine lattice must also divide the repeat it came from: `k` fine pitches within
+        // `FINE_DIVIDES_TOL` of `pitch_ac` (the edge pitch is searched ±12 % around the fraction;
+        // one that wandered off it is another lattice, not this repeat's yarns).
         let finer = || {
-            edge_autocorr_peak(g, axis_x, eg.0) >= 0.25 && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD
+            (k as f64 * eg.0 / pitch_ac - 1.0).abs() <= FINE_DIVIDES_TOL
+                && edge_autocorr_peak(g, axis_x, eg.0) >= 0.25
+                && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD
         };
         if peak >= 0.25 || finer() {
             best = (eg.0, eg);
