@@ -257,13 +257,28 @@ pub const SHIFT_CORR_OF_REPEAT: f64 = 0.5;
 /// Procedural and rendered weaves give 0.2–0.7; fibre noise on a uniform patch stays below 0.05.
 pub const MIN_EDGE_CONFIDENCE: f64 = 0.08;
 
+/// Largest `fine_class_spread` of a finer lattice accepted from the edge energy's own repeat
+/// (without a profile peak at the fraction): the classes' means may differ by a third of the
+/// profile's spread (fibre, light falloff), not by the yarn's own shading (0.8–0.9 when a yarn is
+/// cut in two).
+pub const MAX_FINE_CLASS_SPREAD: f64 = 0.35;
+
+/// Largest relative mismatch between `k` fine pitches and the coarse pitch they divide for a
+/// finer lattice taken from the edges alone (a pitch measured over ≥ 4 repeats is good to ≈ 1 %).
+pub const FINE_DIVIDES_TOL: f64 = 0.015;
+
 /// The yarn pitch among `pitch_ac` (the autocorrelation's first strong peak) and its whole
 /// fractions `pitch_ac / k`, with its [`edge_grid`] estimate. The intensity profile of paired yarns
 /// (basket), long floats or a two-colour random pattern repeats best at a multiple of the yarn
 /// pitch, but every yarn boundary makes edges: a fraction is taken when its edge fundamental is at
 /// least 0.6 of the one at `pitch_ac` and the profile's autocorrelation has a peak ≥ 0.25 within
 /// ±25 % of it, which rules out half a yarn (yarn centre against gap correlates negatively) and the
-/// short lags at which any smooth profile correlates. The smallest such fraction wins.
+/// short lags at which any smooth profile correlates. A fraction without that profile peak is
+/// also taken where the edge energy itself repeats there ([`edge_autocorr_peak`] ≥ 0.25) and its
+/// fine cells are alike in mean brightness ([`fine_class_spread`] ≤ [`MAX_FINE_CLASS_SPREAD`]):
+/// a 4-end crowfoot's wefts have equal means but mirrored shading, so its profile repeats only at
+/// two wefts, while a yarn cut in two by the edges of its own crown puts bright and dark halves
+/// into alternate fine cells. The smallest such fraction wins.
 fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) -> (f64, (f64, f64, f64)) {
     let base = edge_grid(g, axis_x, pitch_ac);
     let ac = autocorr(p, p.len() / 2);
@@ -282,11 +297,71 @@ fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) 
             .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
             .map(|d| ac[d])
             .fold(f64::MIN, f64::max);
-        if eg.2 >= MIN_EDGE_CONFIDENCE && eg.2 >= 0.6 * base.2 && peak >= 0.25 {
+        if eg.2 < MIN_EDGE_CONFIDENCE || eg.2 < 0.6 * base.2 {
+            continue;
+        }
+        // Or the edge energy itself repeats at the candidate and the fine cells are alike in mean
+        // brightness (not a yarn cut in two: see `fine_class_spread`). A 4-end crowfoot's weft rows
+        // have the same mean but not the same profile, so its profile repeats only at two rows.
+        // The fine lattice must also divide the repeat it came from: `k` fine pitches within
+        // `FINE_DIVIDES_TOL` of `pitch_ac` (the edge pitch is searched ±12 % around the fraction;
+        // one that wandered off it is another lattice, not this repeat's yarns).
+        let finer = || {
+            (k as f64 * eg.0 / pitch_ac - 1.0).abs() <= FINE_DIVIDES_TOL
+                && edge_autocorr_peak(g, axis_x, eg.0) >= 0.25
+                && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD
+        };
+        if peak >= 0.25 || finer() {
             best = (eg.0, eg);
         }
     }
     best
+}
+
+/// Highest local maximum of the autocorrelation of the edge energy ([`edge_energy`], mean and
+/// quadratic trend removed) within ±25 % of `lag`; `f64::MIN` when there is none. A harmonic of a
+/// coarser edge lattice gives the edge energy's *fundamental* some amplitude at a fraction of its
+/// period, but it does not make the edge energy repeat there: only boundaries at every fine line do.
+fn edge_autocorr_peak(g: &Gray, axis_x: bool, lag: f64) -> f64 {
+    let mut e = edge_energy(g, axis_x);
+    detrend(&mut e);
+    let ac = autocorr(&e, e.len() / 2);
+    let (lo, hi) = ((0.75 * lag).floor() as usize, ((1.25 * lag).ceil() as usize).min(ac.len().saturating_sub(2)));
+    (lo.max(1)..=hi).filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1]).map(|d| ac[d]).fold(f64::MIN, f64::max)
+}
+
+/// How unlike one another the `k` classes of fine cells of a candidate finer lattice are in mean
+/// brightness: the fine cells `[phase + m·q, phase + (m+1)·q)` of the profile `p` are grouped by
+/// `m mod k` (`k = coarse pitch / q`), and the standard deviation of the `k` class means is
+/// returned as a fraction of the profile's own standard deviation (0: all classes alike; near 1:
+/// the profile *is* the alternation of the classes).
+///
+/// Why: in a regular weave every yarn of a family floats equally often (plain, twills, satins,
+/// crowfoot), so over the whole image every true yarn column (or row) has the same mean; a
+/// finer lattice whose fine cells alternate between bright and dark — a yarn cut through its
+/// bright crown and dark flanks, or through the dark interstice in the middle of each cell
+/// (FabricNET W081: 52.6 px warps cut at 26.4 px) — puts the yarn's own shading into the classes.
+fn fine_class_spread(p: &[f64], q: f64, phase: f64, k: usize) -> f64 {
+    if p.is_empty() || q <= 0.0 || k < 2 {
+        return 0.0;
+    }
+    let mut sum = vec![0.0f64; k];
+    let mut cnt = vec![0usize; k];
+    for (i, &v) in p.iter().enumerate() {
+        let cell = ((i as f64 - phase) / q).floor() as i64;
+        let c = cell.rem_euclid(k as i64) as usize;
+        sum[c] += v;
+        cnt[c] += 1;
+    }
+    let means: Vec<f64> = sum.iter().zip(&cnt).filter(|(_, &n)| n > 0).map(|(s, &n)| s / n as f64).collect();
+    let mm = means.iter().sum::<f64>() / means.len().max(1) as f64;
+    let between = (means.iter().map(|m| (m - mm).powi(2)).sum::<f64>() / means.len().max(1) as f64).sqrt();
+    let pm = p.iter().sum::<f64>() / p.len() as f64;
+    let sd = (p.iter().map(|v| (v - pm).powi(2)).sum::<f64>() / p.len() as f64).sqrt();
+    if sd <= 0.0 {
+        return 0.0;
+    }
+    between / sd
 }
 
 /// Full analysis of one axis of a grey image: `axis_x = true` analyses the column profile, i.e.
@@ -797,6 +872,116 @@ mod tests {
             // Boundaries lie at the image centre plus whole pitches (`render_texture_rotated`).
             let off = ((a.phase as f64 - 120.0) / py).rem_euclid(1.0);
             assert!(off.min(1.0 - off) < 0.1, "case {k}: boundary at {} px, off the lattice 120 + {py} k", a.phase);
+        }
+    }
+
+    /// A `w × h` cloth of warps `px` wide and wefts `py` high: cell `(i, j)` (row, column) shows
+    /// the weft when `weft_on_top(i, j)`; `shade(across, row)` is the brightness at signed
+    /// distance `across ∈ [-0.5, 0.5)` (in yarns) from the centre of the yarn on top (`row` the
+    /// weft's index, or `None` for a warp). Loose fibres: white noise of `sigma`, blurred over
+    /// 3 px (`blur_gray` σ 1.5).
+    fn cloth(
+        (w, h, px, py): (usize, usize, f64, f64),
+        weft_on_top: impl Fn(i64, i64) -> bool,
+        shade: impl Fn(f64, Option<i64>) -> f64,
+        sigma: f32,
+        seed: u64,
+    ) -> Gray {
+        use rand::prelude::*;
+        use rand_distr::{Distribution, Normal};
+        let mut rng = StdRng::seed_from_u64(seed);
+        let normal = Normal::new(0.0f32, sigma.max(1e-9)).unwrap();
+        let mut fibre = Gray::new(w, h);
+        fibre.data.iter_mut().for_each(|v| *v = normal.sample(&mut rng));
+        let fibre = crate::prep::image_ops::blur_gray(&fibre, 1.5);
+        let mut g = Gray::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let (tx, ty) = ((x as f64 + 0.5) / px, (y as f64 + 0.5) / py);
+                let (i, j) = (ty.floor() as i64, tx.floor() as i64);
+                let v = if weft_on_top(i, j) {
+                    shade(ty - ty.floor() - 0.5, Some(i))
+                } else {
+                    shade(tx - tx.floor() - 0.5, None)
+                };
+                g.data[y * w + x] = (v as f32 + fibre.data[y * w + x]).max(0.0);
+            }
+        }
+        g
+    }
+
+    /// Whether `analyze_axis`'s finer-lattice step would see a fraction `k` of `coarse` from the
+    /// edges alone: edge fundamental strong enough, the edge energy repeating there, and no
+    /// profile peak (so the old rule refused it). Returns the fine lattice's class spread.
+    fn edge_only_fraction(g: &Gray, axis_x: bool, coarse: f64, k: usize) -> Option<f64> {
+        let mut p = profile(g, axis_x);
+        detrend(&mut p);
+        let base = edge_grid(g, axis_x, coarse).2;
+        let eg = edge_grid(g, axis_x, coarse / k as f64);
+        let ac = autocorr(&p, p.len() / 2);
+        let (lo, hi) = ((0.75 * eg.0) as usize, (1.25 * eg.0).ceil() as usize);
+        let peak = (lo.max(1)..=hi)
+            .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
+            .map(|d| ac[d])
+            .fold(f64::MIN, f64::max);
+        let edges = eg.2 >= MIN_EDGE_CONFIDENCE && eg.2 >= 0.6 * base && edge_autocorr_peak(g, axis_x, eg.0) >= 0.25;
+        (edges && peak < 0.25).then(|| fine_class_spread(&p, eg.0, eg.1, k))
+    }
+
+    #[test]
+    fn a_hairy_plain_with_bright_crowns_is_not_split() {
+        // A plain of warps 48 px wide over wefts 24 px high (unequal pitches, like FabricNET
+        // W081); each yarn a bright crown over its middle half and dark flanks, no gap between
+        // the flanks of neighbours. The edges between crown and flank come every half warp, so
+        // the edge energy repeats at 24 px along x with a strong fundamental — but the fine
+        // cells alternate crown / flanks.
+        let shade = |a: f64, _: Option<i64>| if a.abs() < 0.25 { 0.85 } else { 0.25 };
+        let mut split_seen = 0;
+        for seed in 0..6 {
+            let g = cloth((384, 240, 48.0, 24.0), |i, j| (i + j).rem_euclid(2) == 0, shade, 0.15, seed);
+            if let Some(spread) = edge_only_fraction(&g, true, 48.0, 2) {
+                split_seen += 1;
+                assert!(spread > MAX_FINE_CLASS_SPREAD, "seed {seed}: class spread {spread:.2}");
+            }
+            let a = analyze_axis(&g, true, 4.0).expect("warp grid");
+            assert!((a.pitch - 48.0).abs() < 1.5, "seed {seed}: warp pitch {}", a.pitch);
+            let b = analyze_axis(&g, false, 4.0).expect("weft grid");
+            assert!((b.pitch - 24.0).abs() < 1.0, "seed {seed}: weft pitch {}", b.pitch);
+        }
+        assert!(split_seen >= 4, "the edges alone proposed the half warp on only {split_seen} of 6 seeds: not a test");
+    }
+
+    #[test]
+    fn a_crowfoot_with_mirrored_wefts_gets_its_weft_pitch() {
+        // A 4-end crowfoot (one warp float per row at columns 0, 1, 3, 2: steps 1, 2, −1, −2),
+        // wefts 24 px high with their highlight off-centre, to one side on even wefts and to the
+        // other on odd ones (as on the carbon photo: each weft row the same mean, the shapes
+        // mirrored, class shapes correlating at −0.7). The row profile repeats at two wefts; every
+        // weft boundary is a dark gap.
+        let float_col = [0i64, 1, 3, 2];
+        let shade = |a: f64, row: Option<i64>| {
+            let off = match row {
+                Some(i) if i.rem_euclid(2) == 0 => 0.18,
+                Some(_) => -0.18,
+                None => 0.0,
+            };
+            if a.abs() > 0.42 {
+                0.05
+            } else {
+                0.2 + 0.7 * (-((a - off) / 0.14).powi(2)).exp()
+            }
+        };
+        for seed in 0..6 {
+            let g = cloth(
+                (320, 384, 24.0, 24.0),
+                |i, j| j.rem_euclid(4) != float_col[i.rem_euclid(4) as usize],
+                shade,
+                0.1,
+                seed,
+            );
+            let spread = edge_only_fraction(&g, false, 48.0, 2);
+            let a = analyze_axis(&g, false, 4.0).expect("weft grid");
+            assert!((a.pitch - 24.0).abs() < 1.0, "seed {seed}: weft pitch {} (spread {spread:?})", a.pitch);
         }
     }
 
