@@ -1,8 +1,9 @@
 //! Finish of the joint runs: the annealed best against the rivals the annealer's small steps could
 //! not reach (the other runs, the starts, the warmed-up candidates, the best whole-pattern
-//! candidate of each weave class re-ranked, an `n_p`/`n_f` scan, the inverted twin), each with the same appearance
-//! descent, the close calls among them with radius rounds too (the run-off); then single-cell
-//! contests; then the winner's appearance restarts and polish, last at `fine_spp`.
+//! candidate of each weave class re-ranked, an `n_p`/`n_f` scan, the inverted twin), each with
+//! the same appearance descent, the close calls among them with radius rounds too (the run-off);
+//! then single-cell contests; then the winner's appearance restarts and polish, last at
+//! `fine_spp`.
 
 use super::candidates::{best_of_each_class, best_variant, candidate_patterns, inverted_twin, toggled_cell};
 use super::evaluator::{state_loss, Evaluator};
@@ -142,8 +143,8 @@ fn runoff(
 
 /// `best` and its rivals: `others` (each with its own appearance: a pattern's inverse comes with
 /// swapped colours), then, with the best's converged appearance, the best whole-pattern
-/// candidate of each weave class re-ranked on `quick`, an `n_p`/`n_f` scan and the inverted twin. No two share their
-/// discrete state.
+/// candidate of each weave class re-ranked on `quick`, an `n_p`/`n_f` scan and the inverted
+/// twin. No two share their discrete state.
 fn rivals(st: &Stage, quick: &Evaluator, best: &ClothParams, others: &[ClothParams]) -> Vec<ClothParams> {
     let stop = &*st.control.stop;
     let (n_e, n_a) = (best.pattern.n_e(), best.pattern.n_a());

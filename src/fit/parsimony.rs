@@ -142,7 +142,7 @@ pub(crate) fn named_weaves(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
     out
 }
 
-/// The textbook weaves of an `n × n` repeat beyond the presets (Watson, "Textile Design and
+/// The textbook weaves of an `n × n` repeat beyond the presets ([Watson12], "Textile Design and
 /// Colour"): a **twill** is any interlacing of the first row moved on by one yarn a row, in
 /// either direction (the 2/1, 3/1, 2/2 of the presets, but also 3/2, 2/1/1/2, 4/4 …; every
 /// non-constant first row, `n ≤ 8`); a **regular satin** has one binding point a row, moved on by

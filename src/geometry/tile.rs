@@ -410,11 +410,12 @@ impl TileGeometry {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::pattern::WeavePattern;
 
-    fn tile(name: &str, r: f32) -> TileGeometry {
+    /// The tile of preset `name` with both families' radius `r` (also the renderer's tests' tile).
+    pub(crate) fn tile(name: &str, r: f32) -> TileGeometry {
         TileGeometry::new(YarnSet::new(&WeavePattern::preset(name).unwrap(), r, r))
     }
 

@@ -215,29 +215,25 @@ impl LegMemo {
     /// [`TileGeometry::exit_tube_at`], answered from the memo when asked before with the same
     /// inputs, and remembered otherwise.
     fn exit(&mut self, geom: &TileGeometry, yarn: usize, anchor: &Anchor, d: Vec3) -> f32 {
-        let key = Self::exit_key(yarn, anchor, d);
-        if let Some((k, t)) = self.exit {
-            if k == key {
-                return t;
-            }
-        }
-        let t = geom.exit_tube_at(yarn, anchor, d);
-        self.exit = Some((key, t));
-        t
+        recall(&mut self.exit, Self::exit_key(yarn, anchor, d), || geom.exit_tube_at(yarn, anchor, d))
     }
 
     /// [`TileGeometry::closest`], answered from the memo when asked before with the same inputs,
     /// and remembered otherwise.
     fn closest(&mut self, geom: &TileGeometry, o: Vec3, d: Vec3, skip: Option<(usize, f32)>) -> Option<TubeHit> {
-        let key = Self::first_key(o, d, skip);
-        if let Some((k, hit)) = self.first {
-            if k == key {
-                return hit;
-            }
+        recall(&mut self.first, Self::first_key(o, d, skip), || geom.closest(o, d, skip))
+    }
+}
+
+/// The answer kept in `slot` when its key is `key`; otherwise `answer()`, kept there under `key`.
+fn recall<K: PartialEq, V: Copy>(slot: &mut Option<(K, V)>, key: K, answer: impl FnOnce() -> V) -> V {
+    match slot {
+        Some((k, v)) if *k == key => *v,
+        _ => {
+            let v = answer();
+            *slot = Some((key, v));
+            v
         }
-        let hit = geom.closest(o, d, skip);
-        self.first = Some((key, hit));
-        hit
     }
 }
 
@@ -625,12 +621,7 @@ impl Tracer<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::yarn::YarnSet;
-    use crate::pattern::WeavePattern;
-
-    fn tile(name: &str, r: f32) -> TileGeometry {
-        TileGeometry::new(YarnSet::new(&WeavePattern::preset(name).unwrap(), r, r))
-    }
+    use crate::geometry::tile::tests::tile;
 
     #[test]
     fn the_leg_memo_answers_only_a_query_equal_to_the_bit() {

@@ -169,8 +169,8 @@ impl GradientParams {
     }
 }
 
-/// Scatter a `K`-partial dual (`K` = [`N_LOCAL`] for the lobes, 2 for the refraction) into the 30 appearance partials (`map[j]` receives
-/// partial `j`, for the first `used` partials).
+/// Scatter a `K`-partial dual (`K` = [`N_LOCAL`] for the lobes, 2 for the refraction) into the
+/// 30 appearance partials (`map[j]` receives partial `j`, for the first `used` partials).
 fn lift<const K: usize>(x: Dual<K>, map: &[usize; K], used: usize) -> Dual<N_APPEARANCE> {
     let mut d = [0.0; N_APPEARANCE];
     for j in 0..used {
@@ -188,11 +188,10 @@ fn lift<const K: usize>(x: Dual<K>, map: &[usize; K], used: usize) -> Dual<N_APP
 /// fifteenth of the cost of the 30-partial `transmit_cos` (a twentieth of a fit's profile).
 fn refract_gradient(g: &GradientParams, vx: &PathVertex, thr: &mut [Dual<N_APPEARANCE>; 3]) -> bool {
     let Some((l, pdf)) = vx.refr else { return false };
-    let (narrow, col) = match vx.kind {
+    let ((p2, map), col) = match vx.kind {
         VertexKind::X => (&g.refr[0], g.full.t_s),
         VertexKind::Y => (&g.refr[1], g.full.t_s_y),
     };
-    let (p2, map) = narrow;
     let (alpha, eta) = match vx.kind {
         VertexKind::X => (p2.alpha, p2.eta),
         VertexKind::Y => (p2.alpha_y, p2.eta_y),
