@@ -105,5 +105,11 @@ pub fn run(a: &PrepArgs) -> Result<()> {
         secs,
         out.display()
     );
+    // How periodic the photo is: the prepared picture (each repeat at its drift) against the photo.
+    println!(
+        "  repeats drift up to {:.1} px; the prepared periodic picture against the photo: {:.1} dB",
+        p.drift.max_shift(),
+        woven::fit::real::periodic_ceiling(&p, &img)
+    );
     Ok(())
 }

@@ -112,8 +112,9 @@ const REGISTER_SPP: u32 = 32;
 /// The fit's view is orthographic and the cloth periodic, so one repeat of the fit grid, rendered
 /// at about the photo's pixels per cell, holds every pixel: input pixel `(x, y)` maps to rectified
 /// pixel `(u, v) = H⁻¹(x, y)`, whose position in the repeat is its offset from the crop's corner
-/// as a fraction of the crop (`crop.w` × `crop.h`: warp and weft pitches may differ), wrapped;
-/// the repeat is sampled there bilinearly with wrap-around. The repeat is blurred as the fit's
+/// as a fraction of the crop (`crop.w` × `crop.h`: warp and weft pitches may differ), wrapped,
+/// after the preparation's drift `s(u)` is taken off (`u − s(u)`: where this repeat of the photo
+/// sits, `prep::drift`); the repeat is sampled there bilinearly with wrap-around. The repeat is blurred as the fit's
 /// renders were before they met the target ([`FitResult::blur_px`]).
 pub fn registered_render(res: &FitResult, size: (u32, u32), threads: Option<usize>) -> Option<Image> {
     register(res, size, threads, true)
@@ -197,9 +198,12 @@ impl RegisteredTile {
         for y in 0..h {
             for x in 0..w {
                 let (u, v) = crate::math::linalg::apply(&self.inv, x as f64, y as f64);
+                // The photo's repeat at u sits shifted by the drift s(u) (`prep::drift`): the
+                // mean repeat the fit matched is read at u − s(u).
+                let s = p.drift.shift_at(u, v);
                 // Pixel centres: rectified pixel u covers [u, u + 1) in edge coordinates.
-                let a = (u + 0.5 - p.crop.x as f64) / cw * tw - 0.5;
-                let b = (v + 0.5 - p.crop.y as f64) / ch * th - 0.5;
+                let a = (u - s[0] + 0.5 - p.crop.x as f64) / cw * tw - 0.5;
+                let b = (v - s[1] + 0.5 - p.crop.y as f64) / ch * th - 0.5;
                 data.push(sample_wrapped(&tile, a, b));
             }
         }
@@ -468,7 +472,9 @@ pub fn write_fit_outputs(res: &FitResult, dir: &Path, add_noise: bool, threads: 
     let mut noise = None;
     if let Some(p) = &res.prep {
         let rect = Image::from_rgb32f(&p.rectified);
-        let reg = Image::from_rgb32f(&p.regularized);
+        // The periodic picture with each repeat where the photo has it (`prep::drift`): the
+        // residual is then the photo's noise and fibre texture, not a misregistration.
+        let reg = Image::from_rgb32f(&p.drift.apply(&p.regularized));
         match crate::noise::residual(&rect, &reg).and_then(|r| crate::noise::NoiseModel::fit(&r)) {
             Ok(model) => {
                 std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;

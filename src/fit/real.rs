@@ -253,14 +253,15 @@ impl RealReport {
 }
 
 /// PSNR (sRGB) against `photo` of the preparation's own periodic picture — the blurred mean of the
-/// aligned repeats (`Prepared::regularized`, whose crop is the fit's target) — mapped back to the
-/// photo through `H⁻¹` as `fit.png` is, bilinear, clamped at the rectified image's edges. A fit
+/// aligned repeats (`Prepared::regularized`, whose crop is the fit's target), each repeat moved
+/// back by its drift (`Prepared::drift`) — mapped back to the photo through `H⁻¹` as `fit.png` is, bilinear, clamped at the rectified image's edges. A fit
 /// that matched its target exactly would score this against the whole photo: the ceiling of the
 /// whole-photo PSNR for any periodic replica of this preparation. What the photo holds beyond one
 /// repeated tile (flyaway fibres, yarns that wander, uneven lighting) lies above it.
 pub fn periodic_ceiling(prepared: &Prepared, photo: &Image) -> f32 {
     let inv = crate::math::linalg::mat3_inv(&prepared.homography).unwrap_or(crate::math::linalg::IDENTITY);
-    let back = warp_rgb(&prepared.regularized, &inv, photo.width as usize, photo.height as usize);
+    let drifted = prepared.drift.apply(&prepared.regularized);
+    let back = warp_rgb(&drifted, &inv, photo.width as usize, photo.height as usize);
     Image::from_rgb32f(&back).psnr_srgb(photo)
 }
 

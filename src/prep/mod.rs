@@ -19,6 +19,7 @@
 //! yarns, running along image x) and `n_a` columns (warp yarns, running along image y).
 
 pub mod cells;
+pub mod drift;
 pub mod grid;
 pub mod image_ops;
 pub mod period;
@@ -32,6 +33,7 @@ use image::Rgb32FImage;
 use serde::Serialize;
 
 pub use crate::math::linalg::Homography;
+pub use drift::RepeatDrift;
 pub use regularize::RepeatParams;
 
 use grid::{analyze_axis, AxisGrid};
@@ -235,6 +237,9 @@ pub struct Prepared {
     pub n_a: usize,
     /// Minimum-pattern crop aligned to the yarn boundaries: `n_a` pitches by `n_e` pitches.
     pub crop: CropRect,
+    /// Where each repeat of the rectified photo sits against the mean repeat, and how brightly it
+    /// is lit ([`RepeatDrift`]): what `regularized` leaves out and the registered fit puts back.
+    pub drift: RepeatDrift,
 }
 
 fn check_input(img: &Rgb32FImage) -> Result<(), PrepError> {
@@ -444,10 +449,10 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         });
     }
     // 5. Mean of the aligned repeats.
-    let regularized = if opts.regularize {
+    let (regularized, drift) = if opts.regularize {
         regularize::mean_of_repeats(&blurred, [ax0.pitch, ay0.pitch], per_x.period, per_y.period, &opts.repeats)
     } else {
-        blurred
+        (blurred, RepeatDrift::default())
     };
     // 6. Grid on the regularized image (falls back to the first estimate if inconsistent).
     let gr = Gray::from_rgb(&regularized);
@@ -501,6 +506,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         n_e,
         n_a,
         crop: CropRect { x: cx, y: cy, w: cw, h: ch },
+        drift,
     })
 }
 
@@ -826,6 +832,28 @@ mod tests {
             assert!((pr.pitch_y / 14.0 - 1.0).abs() < 0.03 && (pr.pitch_x / 19.0 - 1.0).abs() < 0.03, "{msg}");
             assert_eq!((pr.n_e, pr.n_a), (2, 2), "{msg}");
         }
+    }
+
+    #[test]
+    fn a_wavy_weave_gets_its_drift_and_the_periodic_picture_follows_it() {
+        // A 2/2 twill whose yarns wander by up to 0.25 pitch (3 px), slowly across the image: the mean
+        // repeat is one straight repeat, and only the drift puts each repeat back where it lies.
+        let pitch = 12.0;
+        let tau = std::f64::consts::TAU;
+        let wave = |x: f64, y: f64| (x + 3.0 * (tau * y / 300.0).sin(), y + 3.0 * (tau * x / 260.0).sin());
+        let img = render(&twill22(), pitch, 320, 320, wave);
+        let opts = PrepOptions { rectify: false, ..Default::default() };
+        let pr = prepare(&img, &opts).expect("prepare");
+        let shift = pr.drift.max_shift();
+        assert!((1.5..=4.0).contains(&shift), "largest drift {shift:.2} px; {}", pr.to_json());
+        // Against the photo blurred as the regularized image is (σ = pitch/16).
+        let reference = blur_rgb(&img, (pitch / 16.0) as f32);
+        let straight = psnr(&pr.regularized, &reference);
+        let drifted = psnr(&pr.drift.apply(&pr.regularized), &reference);
+        assert!(drifted > straight + 2.0, "straight lattice {straight:.2} dB, with the drift {drifted:.2} dB");
+        // A straight weave has (almost) none.
+        let flat = prepare(&render_flat(&twill22(), pitch, 320, 320), &opts).expect("prepare");
+        assert!(flat.drift.max_shift() < 0.3, "{}", flat.drift.max_shift());
     }
 
     #[test]

@@ -32,6 +32,9 @@
 //! missing yarn, the vignetted corner) is left out of the mean. With pure noise all distances
 //! are alike and every repeat is kept.
 //!
+//! **Drift.** The shifts are kept ([`RepeatDrift`], `prep::drift`): the registered fit and the
+//! periodic ceiling put each repeat back where the photo has it.
+//!
 //! **Output.** The mean repeat `M` is sampled at `ceil(P) + 1` points per axis; output pixel `x`
 //! takes `M(x mod P)` by bicubic interpolation (colour samples are bicubic throughout, the
 //! alignment's grey samples bilinear): the prepared image is the ideal periodic
@@ -40,6 +43,7 @@
 use image::Rgb32FImage;
 use rayon::prelude::*;
 
+use super::drift::RepeatDrift;
 use super::image_ops::{blur_rgb, parabola_offset, Gray};
 
 /// Largest alignment shift searched, pixels (cost grows with its square).
@@ -73,7 +77,7 @@ pub fn regularize(
     params: &RepeatParams,
 ) -> Rgb32FImage {
     let blurred = blur_rgb(img, 0.5 * (pitch[0] + pitch[1]) / 16.0);
-    mean_of_repeats(&blurred, pitch, period_x, period_y, params)
+    mean_of_repeats(&blurred, pitch, period_x, period_y, params).0
 }
 
 /// Repeat lattice along one axis.
@@ -205,19 +209,20 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 /// Mean of the aligned repeats of an (already blurred) image; see the module docs. `pitch` is
 /// the yarn pitch along x and y (it bounds the alignment shift), the periods are the DMF's
-/// (the whole extent on an axis without a repeat).
+/// (the whole extent on an axis without a repeat). Also returns where each repeat sat and how
+/// bright it was ([`RepeatDrift`]), which the mean leaves out and the registered fit puts back.
 pub fn mean_of_repeats(
     img: &Rgb32FImage,
     pitch: [f32; 2],
     period_x: f32,
     period_y: f32,
     params: &RepeatParams,
-) -> Rgb32FImage {
+) -> (Rgb32FImage, RepeatDrift) {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let lx = axis_lattice(w, period_x, pitch[0], params.max_shift);
     let ly = axis_lattice(h, period_y, pitch[1], params.max_shift);
     if !lx.tiled && !ly.tiled {
-        return img.clone();
+        return (img.clone(), RepeatDrift::default());
     }
     let nx = lx.starts.len();
     let n_tiles = nx * ly.starts.len();
@@ -364,6 +369,7 @@ pub fn mean_of_repeats(
     } else {
         vec![true; n_tiles]
     };
+    let drift = repeat_drift(&lx, &ly, &shifts);
     // Mean repeat, sampled at ceil(P) + 1 points per axis, over the copies that hold each sample.
     let mut mean = vec![0.0f32; lx.len * ly.len * 3];
     mean.par_chunks_mut(lx.len * 3).enumerate().for_each(|(v, row)| {
@@ -416,7 +422,13 @@ pub fn mean_of_repeats(
             }
         }
     });
-    Rgb32FImage::from_raw(w as u32, h as u32, out).expect("size")
+    (Rgb32FImage::from_raw(w as u32, h as u32, out).expect("size"), drift)
+}
+
+/// The [`RepeatDrift`] of the lattice: each repeat's alignment shift at its centre.
+fn repeat_drift(lx: &AxisLattice, ly: &AxisLattice, shifts: &[(f64, f64)]) -> RepeatDrift {
+    let centres = |l: &AxisLattice| -> Vec<f64> { l.starts.iter().map(|s| s + 0.5 * l.period).collect() };
+    RepeatDrift::new(centres(lx), centres(ly), shifts.iter().map(|&(x, y)| [x as f32, y as f32]).collect())
 }
 
 #[cfg(test)]
@@ -447,7 +459,7 @@ mod tests {
             }
         }
         let img = blur_rgb(&Rgb32FImage::from_raw(w as u32, h as u32, data).unwrap(), 0.8);
-        let out = mean_of_repeats(&img, [p as f32 / 2.0; 2], p as f32, p as f32, &RepeatParams::default());
+        let out = mean_of_repeats(&img, [p as f32 / 2.0; 2], p as f32, p as f32, &RepeatParams::default()).0;
         // Hole contrast: darkest output pixel against the median pixel. The unaligned average of
         // ±1.5 px shifted 4 px holes would lift the hole floor above ~0.3.
         let g = Gray::from_rgb(&out);
@@ -457,7 +469,7 @@ mod tests {
         assert!(dark < 0.25 && mid > 0.75, "hole {dark:.3}, cloth {mid:.3}");
         let no_align = RepeatParams { max_shift: 0.0, ..Default::default() };
         // max_shift 0 still searches ±1 px (the parabola needs neighbours); the wobble is larger.
-        let blurred = mean_of_repeats(&img, [p as f32 / 2.0; 2], p as f32, p as f32, &no_align);
+        let blurred = mean_of_repeats(&img, [p as f32 / 2.0; 2], p as f32, p as f32, &no_align).0;
         let gb = Gray::from_rgb(&blurred);
         let dark_b = gb.data.iter().cloned().fold(f32::MAX, f32::min);
         assert!(dark < dark_b, "aligned {dark:.3} vs ±1 px {dark_b:.3}");
@@ -469,7 +481,7 @@ mod tests {
     #[test]
     fn single_repeat_is_returned_unchanged_and_outliers_are_dropped() {
         let img = Rgb32FImage::from_fn(64, 48, |x, y| image::Rgb([(x % 7) as f32 / 7.0, (y % 5) as f32 / 5.0, 0.5]));
-        let out = mean_of_repeats(&img, [10.0, 10.0], 64.0, 48.0, &RepeatParams::default());
+        let out = mean_of_repeats(&img, [10.0, 10.0], 64.0, 48.0, &RepeatParams::default()).0;
         assert_eq!(out.as_raw(), img.as_raw());
         // 8×6 repeats of a 20 px stripe pattern, one repeat painted over: the output has no paint.
         let mut img = Rgb32FImage::from_fn(200, 150, |x, _| {
@@ -481,7 +493,7 @@ mod tests {
                 img.put_pixel(x, y, image::Rgb([1.0, 0.0, 1.0]));
             }
         }
-        let out = mean_of_repeats(&img, [10.0, 10.0], 20.0, 20.0, &RepeatParams::default());
+        let out = mean_of_repeats(&img, [10.0, 10.0], 20.0, 20.0, &RepeatParams::default()).0;
         let worst = out.pixels().map(|p| (p.0[0] - p.0[1]).abs()).fold(0.0f32, f32::max);
         assert!(worst < 0.02, "paint leaked into the mean: {worst}");
     }
