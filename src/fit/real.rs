@@ -18,7 +18,6 @@ use super::report::quantile;
 use super::{fit_prepared, FitOptions};
 use crate::image_io::Image;
 use crate::pattern::WeaveClass;
-use crate::prep::image_ops::warp_rgb;
 use crate::prep::Prepared;
 use crate::prep::{diagnostic_overlay, prepare, PrepOptions};
 use anyhow::{bail, Context, Result};
@@ -254,15 +253,39 @@ impl RealReport {
 
 /// PSNR (sRGB) against `photo` of the preparation's own periodic picture — the blurred mean of the
 /// aligned repeats (`Prepared::regularized`, whose crop is the fit's target), each repeat moved
-/// back by its drift (`Prepared::drift`) — mapped back to the photo through `H⁻¹` as `fit.png` is, bilinear, clamped at the rectified image's edges. A fit
-/// that matched its target exactly would score this against the whole photo: the ceiling of the
-/// whole-photo PSNR for any periodic replica of this preparation. What the photo holds beyond one
-/// repeated tile (flyaway fibres, yarns that wander, uneven lighting) lies above it.
+/// back by its drift (`Prepared::drift`) — mapped back to the photo through `H⁻¹` as `fit.png` is:
+/// bilinear, and beyond the rectified image (the photo's corners that the rotation cropped away)
+/// continued by whole periods, as `fit.png` continues its repeat. A fit that matched its target
+/// exactly would score this against the whole photo: the ceiling of the whole-photo PSNR for any
+/// periodic replica of this preparation. What the photo holds beyond one repeated tile (flyaway
+/// fibres, yarns that wander, uneven lighting) lies above it.
 pub fn periodic_ceiling(prepared: &Prepared, photo: &Image) -> f32 {
-    let inv = crate::math::linalg::mat3_inv(&prepared.homography).unwrap_or(crate::math::linalg::IDENTITY);
-    let drifted = prepared.drift.apply(&prepared.regularized);
-    let back = warp_rgb(&drifted, &inv, photo.width as usize, photo.height as usize);
-    Image::from_rgb32f(&back).psnr_srgb(photo)
+    let p = prepared;
+    let inv = crate::math::linalg::mat3_inv(&p.homography).unwrap_or(crate::math::linalg::IDENTITY);
+    let reg = Image::from_rgb32f(&p.regularized);
+    let (w, h) = (reg.width as f64, reg.height as f64);
+    // A coordinate outside [0, n − 1] moved by whole periods to inside (clamped on an axis without
+    // a repeat, or one too short for it).
+    let wrap = |a: f64, n: f64, period: f32, repeated: bool| -> f64 {
+        let period = period as f64;
+        if repeated && period >= 1.0 && period < n - 1.0 && !(0.0..=n - 1.0).contains(&a) {
+            let k = if a < 0.0 { (-a / period).ceil() } else { -((a - (n - 1.0)) / period).ceil() };
+            (a + k * period).clamp(0.0, n - 1.0)
+        } else {
+            a.clamp(0.0, n - 1.0)
+        }
+    };
+    let mut data = Vec::with_capacity((photo.width * photo.height) as usize);
+    for y in 0..photo.height {
+        for x in 0..photo.width {
+            let (u, v) = crate::math::linalg::apply(&inv, x as f64, y as f64);
+            let s = p.drift.shift_at(u, v);
+            let a = wrap(u - s[0], w, p.period_x, p.repeated_x);
+            let b = wrap(v - s[1], h, p.period_y, p.repeated_y);
+            data.push(reg.bilinear(a, b));
+        }
+    }
+    Image::new(photo.width, photo.height, data).psnr_srgb(photo)
 }
 
 /// Path of a photo's outputs under `save`: its path in the folder without the extension.
