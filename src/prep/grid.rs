@@ -851,17 +851,17 @@ mod tests {
         for y in 0..h {
             let j = (y as f64 / py).floor() as usize;
             let fy = y as f64 / py - j as f64;
-            for x in 0..w {
+            for (x, &fibre) in hair[j].iter().enumerate() {
                 let k = (x as f64 / px).floor() as usize;
                 let fx = x as f64 / px - k as f64;
                 let v = if in_stripe(j) {
                     0.8 + 0.06 * (std::f64::consts::TAU * x as f64 / (2.0 * px)).cos()
-                } else if (k + j) % 2 == 0 {
+                } else if (k + j).is_multiple_of(2) {
                     0.15 + 0.7 * ((std::f64::consts::PI * (fx - 0.5)).cos() * (std::f64::consts::PI * (fy - 0.5)).cos())
                 } else {
                     0.15 + 0.05 * (std::f64::consts::PI * (fy - 0.5)).cos()
                 };
-                g.data[y * w + x] = (v as f32 + hair[j][x]).max(0.0);
+                g.data[y * w + x] = (v as f32 + fibre).max(0.0);
             }
         }
         g
