@@ -606,9 +606,12 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
             return best;
         }
         for s in -half + 1..=half {
-            let mut acc = 0.0;
+            // Pooled over the pairs (Σ ab / √(Σ aa · Σ bb)), not the mean of each pair's
+            // correlation: a band without the weave's structure (a plain yarn-dyed stripe,
+            // FabricNET W022's cream bands) correlates with its neighbour near 0 and would
+            // count as much as a band of interlacings; pooled, each pair weighs by its energy.
+            let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
             for (a, b) in bands.iter().zip(&bands[step..]) {
-                let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
                 for x in 0..w as isize {
                     let xs = x + s;
                     if xs < 0 || xs >= w as isize {
@@ -619,11 +622,8 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
                     aa += u * u;
                     bb += v * v;
                 }
-                if aa > 0.0 && bb > 0.0 {
-                    acc += ab / (aa * bb).sqrt();
-                }
             }
-            let c = acc / pairs as f64;
+            let c = if aa > 0.0 && bb > 0.0 { ab / (aa * bb).sqrt() } else { 0.0 };
             if c > best.1 {
                 best = (s, c);
             }
@@ -820,6 +820,65 @@ mod tests {
             }
         }
         g
+    }
+
+    /// A plain of light warps (24 px) under dark wefts (20 px): each warp shows as a bright dot
+    /// on every other weft, so along a weft the dots repeat at two warps (48 px) and the next weft's
+    /// dots lie one warp on — the warp pitch is only in that shift (FabricNET W022). Across the
+    /// middle `stripe` fraction of the wefts runs a pale, smooth yarn-dyed band without
+    /// interlacings to see, only a faint ripple of the warps' colour in place from weft to weft
+    /// (such a band's best shift is 0; at one warp it anti-correlates). Fibres: per weft, noise
+    /// along x blurred over 7 px, `sigma` on the dark wefts, 0.05 on the pale band.
+    fn dotted_plain_with_stripe(stripe: f64, sigma: f32, seed: u64) -> Gray {
+        use rand::prelude::*;
+        use rand_distr::{Distribution, Normal};
+        let (w, h, px, py) = (384usize, 320usize, 24.0f64, 20.0f64);
+        let mut rng = StdRng::seed_from_u64(seed);
+        let bands = (h as f64 / py).ceil() as usize;
+        let (s0, s1) = (0.5 - stripe / 2.0, 0.5 + stripe / 2.0);
+        let in_stripe = |j: usize| {
+            let f = (j as f64 + 0.5) / bands as f64;
+            f >= s0 && f <= s1
+        };
+        let hair: Vec<Vec<f32>> = (0..bands)
+            .map(|j| {
+                let normal = Normal::new(0.0f32, if in_stripe(j) { 0.05 } else { sigma }).unwrap();
+                let raw: Vec<f32> = (0..w + 6).map(|_| normal.sample(&mut rng)).collect();
+                (0..w).map(|x| raw[x..x + 7].iter().sum::<f32>() / 7.0f32.sqrt()).collect()
+            })
+            .collect();
+        let mut g = Gray::new(w, h);
+        for y in 0..h {
+            let j = (y as f64 / py).floor() as usize;
+            let fy = y as f64 / py - j as f64;
+            for (x, &fibre) in hair[j].iter().enumerate() {
+                let k = (x as f64 / px).floor() as usize;
+                let fx = x as f64 / px - k as f64;
+                let v = if in_stripe(j) {
+                    0.8 + 0.06 * (std::f64::consts::TAU * x as f64 / (2.0 * px)).cos()
+                } else if (k + j).is_multiple_of(2) {
+                    0.15 + 0.7 * ((std::f64::consts::PI * (fx - 0.5)).cos() * (std::f64::consts::PI * (fy - 0.5)).cos())
+                } else {
+                    0.15 + 0.05 * (std::f64::consts::PI * (fy - 0.5)).cos()
+                };
+                g.data[y * w + x] = (v as f32 + fibre).max(0.0);
+            }
+        }
+        g
+    }
+
+    #[test]
+    fn a_stripe_without_interlacings_does_not_hide_the_line_shift() {
+        let weft = AxisGrid { pitch: 20.0, phase: 0.0, strength: 0.8, valleys: Vec::new() };
+        for seed in 0..6 {
+            // Without the stripe the shift gives the warp pitch (the test's weave is readable).
+            let got = pitch_from_line_shift(&dotted_plain_with_stripe(0.0, 0.3, seed), true, &weft, 4.0);
+            assert!(got.is_some_and(|(p, _)| (p - 24.0).abs() < 1.0), "seed {seed}, no stripe: {got:?}");
+            // A stripe over 40 % of the wefts: their pairs correlate below 0 at the shift; with
+            // each pair's correlation averaged, the shift fell below its floor (no pitch).
+            let got = pitch_from_line_shift(&dotted_plain_with_stripe(0.4, 0.3, seed), true, &weft, 4.0);
+            assert!(got.is_some_and(|(p, _)| (p - 24.0).abs() < 1.0), "seed {seed}, stripe: {got:?}");
+        }
     }
 
     #[test]

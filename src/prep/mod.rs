@@ -437,6 +437,30 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
             }
         }
     }
+    // 4d. Still no repeat on either axis: a weft- (or warp-) faced weave whose cells all show the
+    //     same family on top, read from where its floats end (`cells::float_end_matrix`).
+    if !per_x.repeated && !per_y.repeated {
+        if let Some(m) = &cm {
+            let mut faced = m.o.clone();
+            faced.sort_by(f64::total_cmp);
+            let floats_x = faced[faced.len() / 2] > 0.0;
+            let pitch = [ax0.pitch as f64, ay0.pitch as f64];
+            if let Some(f) = cells::float_end_matrix(&gb, pitch, [ax0.phase as f64, ay0.phase as f64], floats_x) {
+                let found = [true, false].map(|axis_x| f.repeat(axis_x, opts.max_photo_yarns));
+                let found = match found {
+                    [Some(x), None] => [Some(x), f.square_repeat(false, x.0).map(|c| (x.0, c))],
+                    [None, Some(y)] => [f.square_repeat(true, y.0).map(|c| (y.0, c)), Some(y)],
+                    other => other,
+                };
+                for (k, (per, a)) in [(&mut per_x, &ax0), (&mut per_y, &ay0)].into_iter().enumerate() {
+                    if let Some((n, c)) = found[k] {
+                        *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
+                        n_cells[k] = Some(n);
+                    }
+                }
+            }
+        }
+    }
     // Without a repeat on either axis the whole image is one repeat, which only a strong yarn grid
     // justifies: noise passes the first structure test often enough (its integral projections
     // have some autocorrelation at any lag) and would otherwise come out as a small random grid.
@@ -762,6 +786,21 @@ mod tests {
                 assert_eq!((pr.n_e, pr.n_a), (ne, na), "{msg}");
                 assert!(pr.repeated_x && pr.repeated_y, "{msg}");
             }
+        }
+    }
+
+    /// Weft-faced satins of hairy yarns (`testutil::hairy_weft_satin`) through the whole path:
+    /// the satin's `n × n` and both pitches (the cells' part is tested in
+    /// `cells::tests::a_hairy_weft_faced_satin_repeats_in_its_float_ends`).
+    #[test]
+    fn a_hairy_weft_faced_satin_is_prepared() {
+        for seed in 0..3 {
+            let img = hairy_weft_satin(5, 2, [40.0, 24.0], 560, 400, 0.06, seed);
+            let pr = prepare(&img, &PrepOptions::default()).unwrap_or_else(|e| panic!("seed {seed}: {e}"));
+            let j = pr.to_json();
+            assert!((pr.pitch_x / 40.0 - 1.0).abs() < 0.03, "seed {seed}: {j}");
+            assert!((pr.pitch_y / 24.0 - 1.0).abs() < 0.03, "seed {seed}: {j}");
+            assert_eq!((pr.n_e, pr.n_a), (5, 5), "seed {seed}: {j}");
         }
     }
 

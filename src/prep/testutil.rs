@@ -161,3 +161,61 @@ pub fn striped_plain(
     }
     img
 }
+
+/// A weft-faced satin of hairy yarns, front-lit, axis-aligned: each weft floats over `n − 1`
+/// warps and under one, the binding warp stepping `step` warps a row (`step` coprime with `n`).
+/// No gaps between neighbouring wefts (the flanks fall only to 0.55 of the crown), every float
+/// darkens toward its ends where it dives under the binding warp, and the warp shows at the
+/// binding point only as a weak glossy bump inside a weft-shaded cell — so every cell is
+/// shaded across y like a weft, as on FabricNET W084 / W086. Fibres: per weft row, noise
+/// along x of `sigma`, blurred over 7 px (streaks along the float), plus per-pixel noise
+/// `sigma / 4`. `pitch = [warp, weft]` px; yarn boundaries at multiples of the pitch (before the wander).
+pub fn hairy_weft_satin(n: usize, step: usize, pitch: [f64; 2], w: u32, h: u32, sigma: f32, seed: u64) -> Rgb32FImage {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let normal = Normal::new(0.0f32, sigma).unwrap();
+    let crown = |across: f64| 0.55 + 0.45 * (std::f64::consts::PI * across).cos().max(0.0);
+    let tex = |tx: f64, ty: f64| -> f32 {
+        let (ci, cj) = (ty.floor() as i64, tx.floor() as i64);
+        let (fx, fy) = (tx - tx.floor(), ty - ty.floor());
+        let bind = (step as i64 * ci).rem_euclid(n as i64);
+        // Position along the float: 0 at its start (just after the binding warp), n − 1 at its end.
+        let along = (cj - bind - 1).rem_euclid(n as i64) as f64 + fx;
+        let nf = (n - 1) as f64;
+        let b = if along < nf {
+            // Pressed down only near its ends (within about a fifth of a pitch).
+            let end = along.min(nf - along);
+            crown(fy - 0.5) * (1.0 - 0.4 * (-(end / 0.2).powi(2)).exp())
+        } else {
+            crown(fy - 0.5) * (0.62 + 0.2 * (std::f64::consts::PI * fx).sin())
+        };
+        b as f32
+    };
+    // Wandering wefts: each row's float ends wander along x by up to ±0.12 pitch (a sinusoid of
+    // 2.3 repeats' wavelength, random phase per row: yarn irregularity, uneven beat-up), and each
+    // row is lit by a gain of 0.85–1.15, so no two repeats of pixels are copies.
+    let rows = (h as f64 / pitch[1]).ceil() as usize + 2;
+    let wave: Vec<(f64, f32)> =
+        (0..rows).map(|_| (std::f64::consts::TAU * rng.random::<f64>(), 0.85 + 0.3 * rng.random::<f32>())).collect();
+    let lambda = 2.3 * n as f64 * pitch[0];
+    let clean = supersample(w, h, |x, y| {
+        let ty = y / pitch[1];
+        let (phi, gain) = wave[(ty.floor().max(0.0) as usize).min(rows - 1)];
+        let shift = 0.12 * pitch[0] * (std::f64::consts::TAU * x / lambda + phi).sin();
+        let v = gain * tex((x + shift) / pitch[0], ty);
+        [0.8 * v, 0.82 * v, 0.78 * v]
+    });
+    let hair: Vec<Vec<f32>> = (0..rows)
+        .map(|_| {
+            let raw: Vec<f32> = (0..w as usize + 6).map(|_| normal.sample(&mut rng)).collect();
+            (0..w as usize).map(|x| raw[x..x + 7].iter().sum::<f32>() / 7.0f32.sqrt()).collect()
+        })
+        .collect();
+    let pixel = Normal::new(0.0f32, sigma / 4.0).unwrap();
+    let mut img = clean;
+    for (x, y, px) in img.enumerate_pixels_mut() {
+        let row = (y as f64 / pitch[1]).floor() as usize;
+        let v = hair[row][x as usize] + pixel.sample(&mut rng);
+        px.0.iter_mut().for_each(|c| *c = (*c + v).max(0.0));
+    }
+    img
+}
