@@ -7,9 +7,9 @@
 //! * one over/under logit per pattern cell of the view's grid (VGG-style 3×3 convolutions and
 //!   max-pooling from pixels down to one value per cell, a 1×1 convolution head), so any pattern
 //!   is read — averaging the logits of the grid cells that show the same pattern cell;
-//! * the parameters the picture determines (radii, ply count, body colours, specular strength
-//!   and lobe width: see [`view_outputs`]), each as a mean and a log-variance (Gaussian negative
-//!   log-likelihood), so the fit knows how much to trust each.
+//! * the parameters the picture determines (radii, ply count, the body colours' chromaticity,
+//!   specular strength and lobe width: see [`view_outputs`]), each as a mean and a log-variance
+//!   (Gaussian negative log-likelihood), so the fit knows how much to trust each.
 //!
 //! * [`NetSpec`] describes the architecture and the outputs; it is stored in the metadata of every
 //!   saved model, so a model file is self-describing.
