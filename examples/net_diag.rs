@@ -14,6 +14,12 @@
 //!     |∂I/∂x| over the cell; `CUE_MID=k` restricts each to the middle k rows / columns), per rig.
 //! cargo run --release --example net_diag -- cluster DATA MODEL
 //!     grid cells right before and after `woven::net::pool_by_colour`, per split.
+//! cargo run --release --example net_diag -- colour DATA
+//!     how much of each body colour the picture holds (session 14): each family's mean colour
+//!     over the middle of the cells it tops (truth labels), against the family's `R^B` —
+//!     absolute, exposure-normalised, as chromaticity and as the two families' ratio — as the
+//!     MAE of a least-squares line through the views ÷ the MAE of always answering the median
+//!     (the trainer's verdict scale), per rig.
 //! ```
 //!
 //! Whether a model under-fits (train and val accuracy both low) or over-fits, and which views
@@ -26,7 +32,7 @@ use woven::net::PreEstimator;
 use woven::progress::{NoProgress, Progress};
 
 const USAGE: &str =
-    "usage: net_diag views DATA MODEL OUTDIR | train DATA CONFIG WORK EPOCHS [resume] | cue DATA | cluster DATA MODEL";
+    "usage: net_diag views DATA MODEL OUTDIR | train DATA CONFIG WORK EPOCHS [resume] | cue DATA | cluster DATA MODEL | colour DATA";
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -50,6 +56,7 @@ fn main() -> Result<()> {
         }
         Some("cue") if args.len() == 3 => cue(Path::new(&args[2])),
         Some("cluster") if args.len() == 4 => cluster(Path::new(&args[2]), Path::new(&args[3])),
+        Some("colour") if args.len() == 3 => colour(Path::new(&args[2])),
         _ => bail!("{USAGE}"),
     }
 }
@@ -253,6 +260,101 @@ fn cluster(data: &Path, model: &Path) -> Result<()> {
         }
     }
     groups.print("", "");
+    Ok(())
+}
+
+/// MAE of the least-squares line `y ≈ a + b x` through the pairs, ÷ the MAE of the median of `y`:
+/// 1 when `x` says nothing about `y` (linearly), 0 when it determines it.
+fn line_mae_ratio(pairs: &[(f64, f64)]) -> f64 {
+    let n = pairs.len() as f64;
+    let (mx, my) = (pairs.iter().map(|p| p.0).sum::<f64>() / n, pairs.iter().map(|p| p.1).sum::<f64>() / n);
+    let sxy: f64 = pairs.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+    let sxx: f64 = pairs.iter().map(|p| (p.0 - mx).powi(2)).sum();
+    let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+    let mae = pairs.iter().map(|p| (p.1 - my - b * (p.0 - mx)).abs()).sum::<f64>() / n;
+    let mut ys: Vec<f64> = pairs.iter().map(|p| p.1).collect();
+    ys.sort_by(f64::total_cmp);
+    let med = ys[ys.len() / 2];
+    let base = ys.iter().map(|y| (y - med).abs()).sum::<f64>() / n;
+    mae / base.max(1e-12)
+}
+
+/// See the module docs, `colour`.
+fn colour(data: &Path) -> Result<()> {
+    let (_, samples, _) = woven::pre::load_dataset(data, &NoProgress)?;
+    let text = std::fs::read_to_string(data.join("labels.jsonl"))?;
+    let labels: Vec<serde_json::Value> =
+        text.lines().map(serde_json::from_str).collect::<Result<_, _>>().context("parsing labels.jsonl")?;
+    // (group, feature name) -> (x, y) pairs over the views.
+    let mut pairs: BTreeMap<(String, String), Vec<(f64, f64)>> = BTreeMap::new();
+    for (s, l) in samples.iter().zip(&labels) {
+        let truth = s.cell_labels();
+        let img = &s.image;
+        let (w, h) = img.dimensions();
+        let mean_img = img.as_raw().iter().map(|&v| v as f64).sum::<f64>() / (3 * w * h) as f64;
+        // Family sums over the middle 4 × 4 px of every cell it tops (label true: weft on top).
+        let mut fam = [[0f64; 3]; 2];
+        let mut cnt = [0usize; 2];
+        for (r, row) in truth.iter().enumerate() {
+            for (c, &t) in row.iter().enumerate() {
+                let f = if t { 0 } else { 1 };
+                for y in r * 8 + 2..r * 8 + 6 {
+                    for x in c * 8 + 2..c * 8 + 6 {
+                        let p = img.get_pixel(x as u32, y as u32);
+                        for k in 0..3 {
+                            fam[f][k] += p[k].max(0.0) as f64;
+                        }
+                        cnt[f] += 1;
+                    }
+                }
+            }
+        }
+        if cnt.contains(&0) {
+            continue;
+        }
+        let fam: Vec<[f64; 3]> = (0..2).map(|f| fam[f].map(|v| v / cnt[f] as f64)).collect();
+        let ap = &l["cloth"]["appearance"];
+        let rb = |key: &str| -> [f64; 3] {
+            let a = ap[key].as_array();
+            [0, 1, 2].map(|k| a.and_then(|a| a[k].as_f64()).unwrap_or(f64::NAN))
+        };
+        let truth_rb = [rb("r_b_e"), rb("r_b_a")];
+        let rig = rig_name(l);
+        for group in ["all".to_string(), format!("rig {rig}")] {
+            let mut add = |feat: &str, x: f64, y: f64| {
+                pairs.entry((group.clone(), feat.to_string())).or_default().push((x, y));
+            };
+            for (f, name) in [(0, "e"), (1, "a")] {
+                let sum_c: f64 = fam[f].iter().sum::<f64>() + 1e-6;
+                let sum_t: f64 = truth_rb[f].iter().sum::<f64>() + 1e-6;
+                let other = [rb(&format!("s_b_{name}")), rb("r_s"), rb("t_s")];
+                // The body lobes' weight at a front vertex (src/shading/bysdf.rs `VertexTerms`):
+                // m_r · (1 − T^S_k) · R^B_k, the colour the picture shows up to the light level.
+                let m_r = ap["m_r"].as_f64().unwrap_or(f64::NAN);
+                let eff = [0, 1, 2].map(|k| m_r * (1.0 - other[2][k]) * truth_rb[f][k]);
+                let sum_eff: f64 = eff.iter().sum::<f64>() + 1e-6;
+                for k in 0..3 {
+                    for (o, oname) in other.iter().zip(["s_b", "r_s", "t_s"]) {
+                        add(&format!("{oname}({name})[k] ~ colour / mean"), fam[f][k] / mean_img, o[k]);
+                    }
+                    add(&format!("r_b_{name}[k] ~ colour"), fam[f][k], truth_rb[f][k]);
+                    add(&format!("m_r (1 - t_s) r_b_{name}[k] ~ colour / mean"), fam[f][k] / mean_img, eff[k]);
+                    add(&format!("m_r (1 - t_s) r_b_{name}[k] ~ colour"), fam[f][k], eff[k]);
+                    add(&format!("chroma (1 - t_s) r_b_{name}[k] ~ chroma"), fam[f][k] / sum_c, eff[k] / sum_eff);
+                    add(&format!("r_b_{name}[k] ~ colour / mean"), fam[f][k] / mean_img, truth_rb[f][k]);
+                    add(&format!("chroma r_b_{name}[k] ~ chroma"), fam[f][k] / sum_c, truth_rb[f][k] / sum_t);
+                }
+            }
+            for k in 0..3 {
+                let x = fam[0][k] / (fam[0][k] + fam[1][k] + 1e-6);
+                let y = truth_rb[0][k] / (truth_rb[0][k] + truth_rb[1][k] + 1e-6);
+                add("ratio r_b_e/(r_b_e+r_b_a)[k] ~ same of colour", x, y);
+            }
+        }
+    }
+    for ((group, feat), p) in &pairs {
+        eprintln!("{group}: {feat}: {} pairs, line MAE / median MAE {:.2}", p.len(), line_mae_ratio(p));
+    }
     Ok(())
 }
 

@@ -102,12 +102,14 @@ fn parse_grid(s: &str) -> Result<(usize, usize), String> {
 }
 
 fn print_outputs(outputs: &[PredictedOutput]) {
-    println!("{:<10} {:>9} {:>9}", "parameter", "value", "± σ");
+    // The widest name sets the column (`chroma_b_e[0]` is 13 characters).
+    let w = outputs.iter().map(|o| o.name.len()).max().unwrap_or(0).max(10);
+    println!("{:<w$} {:>9} {:>9}", "parameter", "value", "± σ");
     for o in outputs {
         if o.integer {
-            println!("{:<10} {:>9} {:>9.2}", o.name, o.value.round() as i64, o.sigma);
+            println!("{:<w$} {:>9} {:>9.2}", o.name, o.value.round() as i64, o.sigma);
         } else {
-            println!("{:<10} {:>9.4} {:>9.4}", o.name, o.value, o.sigma);
+            println!("{:<w$} {:>9.4} {:>9.4}", o.name, o.value, o.sigma);
         }
     }
 }

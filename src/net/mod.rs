@@ -7,9 +7,9 @@
 //! * one over/under logit per pattern cell of the view's grid (VGG-style 3×3 convolutions and
 //!   max-pooling from pixels down to one value per cell, a 1×1 convolution head), so any pattern
 //!   is read — averaging the logits of the grid cells that show the same pattern cell;
-//! * the parameters the picture determines (radii, ply count, body colours, specular strength
-//!   and lobe width: see [`view_outputs`]), each as a mean and a log-variance (Gaussian negative
-//!   log-likelihood), so the fit knows how much to trust each.
+//! * the parameters the picture determines (radii, ply count, the body colours' chromaticity,
+//!   specular strength and lobe width: see [`view_outputs`]), each as a mean and a log-variance
+//!   (Gaussian negative log-likelihood), so the fit knows how much to trust each.
 //!
 //! * [`NetSpec`] describes the architecture and the outputs; it is stored in the metadata of every
 //!   saved model, so a model file is self-describing.
@@ -167,27 +167,95 @@ impl OutputSpec {
     }
 }
 
-/// Names of the parameters the network predicts: those one picture of the fit's view determines
-/// (the Cramér–Rao analysis of `src/fit/identify.rs` marks the body colours, `R^S` and `α^S` as
-/// identifiable under the default rig; radii and ply count shape every yarn's silhouette).
+/// Names of the outputs the network predicts: what one picture of the fit's view determines.
+/// Radii and ply count shape every yarn's silhouette; `R^S` and `α^S` are marked identifiable
+/// under the default rig by the Cramér–Rao analysis of `src/fit/identify.rs`. The body colours
+/// are predicted as the chromaticity the picture shows ([`body_chroma`]), not as `R^B` itself:
+/// `R^B` reaches the image only through the product `m_r (1 − T^S_k) R^B_k` (the body lobes'
+/// weight, `src/shading/bysdf.rs`), so with `T^S_k` drawn per channel the absolute `R^B` is not
+/// in the picture (session 14, docs/benchmarks.md: a least-squares line from a family's colour to
+/// its `R^B_k` leaves 0.94 of the median baseline's error; to the chromaticity of the product,
+/// 0.53, 0.32 under front light). Models made before session 14 predict `r_b_e[k]` / `r_b_a[k]`
+/// and still load ([`cloth_targets`] reads both).
 pub const VIEW_OUTPUTS: [&str; 13] = [
-    "r_e", "r_a", "n_p", "r_b_e[0]", "r_b_e[1]", "r_b_e[2]", "r_b_a[0]", "r_b_a[1]", "r_b_a[2]", "r_s[0]", "r_s[1]",
-    "r_s[2]", "alpha_s",
+    "r_e",
+    "r_a",
+    "n_p",
+    "chroma_b_e[0]",
+    "chroma_b_e[1]",
+    "chroma_b_e[2]",
+    "chroma_b_a[0]",
+    "chroma_b_a[1]",
+    "chroma_b_a[2]",
+    "r_s[0]",
+    "r_s[1]",
+    "r_s[2]",
+    "alpha_s",
 ];
 
-/// The regression outputs of the pre-estimator: [`VIEW_OUTPUTS`], each with its Table-1 range.
-pub fn view_outputs() -> Vec<OutputSpec> {
-    VIEW_OUTPUTS
-        .iter()
-        .map(|n| OutputSpec::for_param(PARAMS.iter().find(|p| p.name == *n).expect("a parameter of the table")))
-        .collect()
+/// Prefix of the derived body-chromaticity outputs (`chroma_b_e[k]` weft, `chroma_b_a[k]` warp).
+pub const BODY_CHROMA_PREFIX: &str = "chroma_b_";
+
+/// Chromaticity of the body colour a yarn family shows, `c_k / Σ_j c_j` with
+/// `c_k = m_r (1 − T^S_k) R^B_k`: the weight of the body lobes at a front vertex
+/// (`src/shading/bysdf.rs` `VertexTerms`: what the specular transmission leaves enters the body,
+/// `m_r` of it is reflected with colour `R^B`). The overall level is shared with the light and
+/// the exposure, so only the ratios are read; `m_r` cancels. `weft` picks `R^B_e`, else `R^B_a`.
+/// A black family (Σ c = 0) has no chromaticity: `[1/3; 3]`.
+pub fn body_chroma(cloth: &ClothParams, weft: bool) -> [f64; 3] {
+    let a = &cloth.appearance;
+    let r_b = if weft { a.r_b_e } else { a.r_b_a };
+    let c: [f64; 3] = std::array::from_fn(|k| (1.0 - a.t_s[k] as f64).max(0.0) * r_b[k].max(0.0) as f64);
+    let sum: f64 = c.iter().sum();
+    if sum <= 1e-9 {
+        return [1.0 / 3.0; 3];
+    }
+    c.map(|v| v / sum)
 }
 
-/// Training targets of a cloth for `outputs` (by parameter name), normalised to `[0,1]` by each
-/// output's range; `None` when an output is not a cloth parameter.
+/// The family (true: weft) and channel of a derived body-chromaticity output name
+/// (`chroma_b_e[k]`, `chroma_b_a[k]`, `k` in 0..3); `None` for any other name.
+fn parse_body_chroma(name: &str) -> Option<(bool, usize)> {
+    let rest = name.strip_prefix(BODY_CHROMA_PREFIX)?;
+    let (weft, k) = match rest.as_bytes() {
+        [b'e', b'[', k, b']'] => (true, *k),
+        [b'a', b'[', k, b']'] => (false, *k),
+        _ => return None,
+    };
+    (k as char).to_digit(10).filter(|&k| k < 3).map(|k| (weft, k as usize))
+}
+
+/// The value of the derived output `name` (not a cloth parameter) for `cloth`: `chroma_b_e[k]`
+/// and `chroma_b_a[k]` ([`body_chroma`]); `None` for any other name.
+pub fn derived_output(cloth: &ClothParams, name: &str) -> Option<f64> {
+    parse_body_chroma(name).map(|(weft, k)| body_chroma(cloth, weft)[k])
+}
+
+/// The output spec of `name`: a cloth parameter with its Table-1 range, or a derived output
+/// ([`derived_output`], range `[0, 1]`); `None` for an unknown name.
+pub fn output_spec(name: &str) -> Option<OutputSpec> {
+    if let Some(p) = PARAMS.iter().find(|p| p.name == name) {
+        return Some(OutputSpec::for_param(p));
+    }
+    parse_body_chroma(name).map(|_| OutputSpec::continuous(name, 0.0, 1.0))
+}
+
+/// The regression outputs of the pre-estimator: [`VIEW_OUTPUTS`], each with its range.
+pub fn view_outputs() -> Vec<OutputSpec> {
+    VIEW_OUTPUTS.iter().map(|n| output_spec(n).expect("a parameter of the table or a derived output")).collect()
+}
+
+/// Training targets of a cloth for `outputs` (by name: a cloth parameter or a derived output),
+/// normalised to `[0,1]` by each output's range; `None` when an output is neither.
 pub fn cloth_targets(cloth: &ClothParams, outputs: &[OutputSpec]) -> Option<Vec<f32>> {
     let v = cloth.to_vec();
-    outputs.iter().map(|o| PARAMS.iter().position(|p| p.name == o.name).map(|k| o.normalise(v[k] as f64))).collect()
+    outputs
+        .iter()
+        .map(|o| match PARAMS.iter().position(|p| p.name == o.name) {
+            Some(k) => Some(o.normalise(v[k] as f64)),
+            None => derived_output(cloth, &o.name).map(|x| o.normalise(x)),
+        })
+        .collect()
 }
 
 /// The output that plays the same part for the other yarn family (`r_e` ↔ `r_a`, `r_b_e[k]` ↔
@@ -488,12 +556,30 @@ mod tests {
         assert_eq!(o.len(), VIEW_OUTPUTS.len());
         assert_eq!(o[0], OutputSpec::continuous("r_e", 1.0, 5.0));
         assert_eq!(o[2], OutputSpec::integer("n_p", 1, 7));
+        assert_eq!(o[7], OutputSpec::continuous("chroma_b_a[1]", 0.0, 1.0));
         let mut c = ClothParams::preset("plain").unwrap();
-        (c.r_e, c.n_p, c.appearance.r_b_a[1]) = (2.0, 7, 0.3);
+        (c.r_e, c.n_p) = (2.0, 7);
+        // Warp body colour (0.2, 0.3, 0.5) behind T^S = (0.5, 0, 0): the picture shows
+        // (0.1, 0.3, 0.5) · m_r, chromaticity (1/9, 3/9, 5/9).
+        (c.appearance.r_b_a, c.appearance.t_s) = ([0.2, 0.3, 0.5], [0.5, 0.0, 0.0]);
         let t = cloth_targets(&c, &o).unwrap();
-        assert_eq!((t[0], t[2], t[7]), (0.25, 1.0, 0.3));
+        assert_eq!((t[0], t[2]), (0.25, 1.0));
+        assert!((t[6] - 1.0 / 9.0).abs() < 1e-6 && (t[7] - 3.0 / 9.0).abs() < 1e-6, "{t:?}");
+        assert!((t[8] - 5.0 / 9.0).abs() < 1e-6, "{t:?}");
         assert!(t.iter().all(|v| (0.0..=1.0).contains(v)));
         assert!(cloth_targets(&c, &[OutputSpec::continuous("period", 0.0, 1.0)]).is_none());
+        // Old models' outputs (R^B itself) still give targets.
+        let old = [OutputSpec::for_param(PARAMS.iter().find(|p| p.name == "r_b_a[1]").unwrap())];
+        assert_eq!(cloth_targets(&c, &old).unwrap(), vec![0.3]);
+        // m_r cancels, a black family has no chromaticity, bad names are no outputs.
+        let mut d = c.clone();
+        d.appearance.m_r = 0.7;
+        assert_eq!(body_chroma(&d, false), body_chroma(&c, false));
+        d.appearance.r_b_e = [0.0; 3];
+        assert_eq!(body_chroma(&d, true), [1.0 / 3.0; 3]);
+        for bad in ["chroma_b_e[3]", "chroma_b_x[0]", "chroma_b_e[0", "chroma_b_e[10]"] {
+            assert!(derived_output(&c, bad).is_none() && output_spec(bad).is_none(), "{bad}");
+        }
         // Partners exist among the outputs and are symmetric.
         for n in VIEW_OUTPUTS {
             if let Some(p) = weft_warp_partner(n) {
@@ -502,6 +588,7 @@ mod tests {
             }
         }
         assert_eq!(weft_warp_partner("r_b_e[2]").as_deref(), Some("r_b_a[2]"));
+        assert_eq!(weft_warp_partner("chroma_b_a[0]").as_deref(), Some("chroma_b_e[0]"));
         assert_eq!(weft_warp_partner("alpha_s"), None);
     }
 

@@ -579,6 +579,7 @@ fn load_checkpoint(path: &Path, opt: &mut AdamW, spec: &NetSpec) -> Result<Check
 /// Anything else (a base tensor the new network lacks, a changed width, a new non-residual
 /// layer) is an error: the start would not be the base's function. Returns (copied, zeroed).
 pub fn warm_start(varmap: &VarMap, spec: &NetSpec, base: &Path) -> Result<(usize, usize)> {
+    let model_path = base;
     let bytes = std::fs::read(base).with_context(|| format!("reading init model {}", base.display()))?;
     let st = safetensors::SafeTensors::deserialize(&bytes)
         .map_err(|e| anyhow::anyhow!("init model {} is not a safetensors file: {e}", base.display()))?;
@@ -588,6 +589,13 @@ pub fn warm_start(varmap: &VarMap, spec: &NetSpec, base: &Path) -> Result<(usize
         .filter(|&j| spec.cell_residual && spec.cell_convs[j - 1] == spec.cell_convs[j])
         .map(|j| format!("cell{j}."))
         .collect();
+    // The base model's outputs, by name (its spec is in the metadata), for a parameter head
+    // whose outputs changed: rows of outputs both models have are copied, new ones start at zero.
+    let base_outputs: Option<Vec<String>> = safetensors::SafeTensors::read_metadata(&bytes)
+        .ok()
+        .and_then(|(_, h)| h.metadata().as_ref().and_then(|m| m.get(META_SPEC).cloned()))
+        .and_then(|j| serde_json::from_str::<NetSpec>(&j).ok())
+        .map(|b| b.outputs.into_iter().map(|o| o.name).collect());
     let data = varmap.data().lock().expect("varmap lock poisoned");
     let mut names: Vec<&String> = data.keys().collect();
     names.sort();
@@ -598,8 +606,15 @@ pub fn warm_start(varmap: &VarMap, spec: &NetSpec, base: &Path) -> Result<(usize
         match st.tensor(name) {
             Ok(view) => {
                 let old = decode_f32(&view)?;
-                let vals = if view.shape() == dims.as_slice() {
+                let same_outputs = base_outputs
+                    .as_ref()
+                    .is_none_or(|b| b.iter().map(String::as_str).eq(spec.outputs.iter().map(|o| o.name.as_str())));
+                let vals = if view.shape() == dims.as_slice() && (same_outputs || !name.starts_with("head.")) {
                     old
+                } else if let (true, Some(base)) = (name.starts_with("head."), &base_outputs) {
+                    remap_head_rows(&old, view.shape(), &dims, base, spec).with_context(|| {
+                        format!("init model {}: tensor {name} does not match its outputs", model_path.display())
+                    })?
                 } else if view.shape().len() == 4
                     && dims.len() == 4
                     && (0..4).all(|a| a == 1 || view.shape()[a] == dims[a])
@@ -640,6 +655,35 @@ pub fn warm_start(varmap: &VarMap, spec: &NetSpec, base: &Path) -> Result<(usize
         bail!("init model {} has tensor {extra}, which the network does not use", base.display());
     }
     Ok((copied, zeroed))
+}
+
+/// The parameter head's `head.weight` (`2n × hidden`) or `head.bias` (`2n`) of a base model with
+/// outputs `base` (`old`, shape `old_shape`) laid out for `spec`'s outputs (`dims`): the head's
+/// rows are the `n` means then the `n` log-variances, in output order, so each output the two
+/// models share keeps its two rows and a new output starts at zero (mean σ(0) = ½ of its range,
+/// log-variance 0: wide, until training says otherwise). An error when the shapes disagree
+/// otherwise (another hidden width) or the base spec does not match the tensor.
+fn remap_head_rows(
+    old: &[f32],
+    old_shape: &[usize],
+    dims: &[usize],
+    base: &[String],
+    spec: &NetSpec,
+) -> Result<Vec<f32>> {
+    let row = |shape: &[usize]| shape.iter().skip(1).product::<usize>();
+    let (n_old, n_new, width) = (base.len(), spec.outputs.len(), row(dims));
+    if old_shape.len() != dims.len() || row(old_shape) != width || old_shape[0] != 2 * n_old || dims[0] != 2 * n_new {
+        bail!("shape {old_shape:?} with {n_old} base outputs cannot become {dims:?} with {n_new}");
+    }
+    let mut v = vec![0f32; dims.iter().product()];
+    for (i, o) in spec.outputs.iter().enumerate() {
+        if let Some(j) = base.iter().position(|b| *b == o.name) {
+            for (dst, src) in [(i, j), (n_new + i, n_old + j)] {
+                v[dst * width..(dst + 1) * width].copy_from_slice(&old[src * width..(src + 1) * width]);
+            }
+        }
+    }
+    Ok(v)
 }
 
 /// Train the pre-estimator on `samples` and write everything into the directory `out`
@@ -1047,6 +1091,38 @@ pub(crate) mod tests {
         assert!(e.contains("lacks tensor cell1."), "{e}");
         let e = warm_start(&vm, &plain, &dir.path().join("none.safetensors")).unwrap_err().to_string();
         assert!(e.contains("reading init model"), "{e}");
+    }
+
+    #[test]
+    fn warm_start_keeps_the_outputs_both_models_have_and_starts_new_ones_at_zero() {
+        // Base outputs (red, rows); the new head reads (blue, red): `red` keeps its mean and
+        // log-variance, `blue` starts at σ(0) = 0.5 with log-variance 0; the cells are unchanged.
+        let dir = tempfile::tempdir().unwrap();
+        let base_spec = tiny_spec();
+        let (base_vm, base_net) = model::build(&base_spec, 21).unwrap();
+        let path = dir.path().join("base.safetensors");
+        save_model(&path, &base_vm, &base_spec, None).unwrap();
+        let mut spec = tiny_spec();
+        spec.outputs = vec![OutputSpec::continuous("blue", 0.0, 1.0), OutputSpec::continuous("red", 0.0, 1.0)];
+        let (vm, net) = model::build(&spec, 22).unwrap();
+        assert_eq!(warm_start(&vm, &spec, &path).unwrap(), (12, 0), "every tensor copied, the head remapped");
+        let x = Tensor::randn(0f32, 1.0, (2, INPUT_CHANNELS, 32, 32), &Device::Cpu).unwrap();
+        let (a, b) = (base_net.forward(&x).unwrap(), net.forward(&x).unwrap());
+        let rows = |t: &Option<Tensor>| t.as_ref().unwrap().to_vec2::<f32>().unwrap();
+        let (am, bm, al, bl) = (rows(&a.mean), rows(&b.mean), rows(&a.log_var), rows(&b.log_var));
+        for i in 0..2 {
+            assert!((bm[i][1] - am[i][0]).abs() < 1e-6 && (bl[i][1] - al[i][0]).abs() < 1e-6, "red kept");
+            assert!((bm[i][0] - 0.5).abs() < 1e-6 && bl[i][0].abs() < 1e-6, "blue at zero: {} {}", bm[i][0], bl[i][0]);
+        }
+        let la = a.cell_logits.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let lb = b.cell_logits.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(la.iter().zip(&lb).all(|(p, q)| (p - q).abs() < 1e-6));
+        // Another hidden width cannot be remapped.
+        let mut wide = spec.clone();
+        wide.hidden = 24;
+        let (vm, _) = model::build(&wide, 1).unwrap();
+        let e = format!("{:#}", warm_start(&vm, &wide, &path).unwrap_err());
+        assert!(e.contains("fc1.") || e.contains("head."), "{e}");
     }
 
     #[test]
