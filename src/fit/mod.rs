@@ -292,6 +292,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     })
 }
 
+/// A view of the target: the cyclic shift `(dx, dy)` in fit pixels and the blur σ of the renders.
+type View = ((i32, i32), f32);
+
 /// Rounds of radius steps in each reading's polish in [`reading_view_contest`] (as in the
 /// pre-estimation's warm-up).
 const READING_VIEW_ROUNDS: usize = 2;
@@ -325,7 +328,7 @@ fn reading_view_contest(
     blur0: f32,
     iters: usize,
     stop: &std::sync::atomic::AtomicBool,
-) -> ((i32, i32), f32) {
+) -> View {
     let own_view = preestimate::fit_view(ev0, &pre.initial, blur0);
     let choice = parsimony::PatternChoice::new(ev0, true, &pre.initial);
     let mut readings: Vec<ClothParams> = vec![pre.initial.clone()];
@@ -345,7 +348,7 @@ fn reading_view_contest(
     if readings.len() == 1 {
         return own_view;
     }
-    let mut best: Option<(f64, ((i32, i32), f32), ClothParams)> = None;
+    let mut best: Option<(f64, View, ClothParams)> = None;
     for (k, reading) in readings.iter().enumerate() {
         if stop.load(std::sync::atomic::Ordering::Relaxed) {
             break;
@@ -431,10 +434,8 @@ mod tests {
         assert_eq!(pre.starts[0].pattern, truth.pattern);
         assert_eq!(shift, (-2, 0));
         assert!(pre.warmed.iter().any(|w| w.pattern == twin.pattern));
-        let mut kept =
-            preestimate::PreEstimate { starts: vec![truth.clone()], warmed: vec![], initial: truth.clone() };
+        let mut kept = preestimate::PreEstimate { starts: vec![truth.clone()], warmed: vec![], initial: truth.clone() };
         assert_eq!(reading_view_contest(&ev0, &mut kept, 0.0, 6, &stop).0, (-2, 0));
         assert_eq!(kept.initial, truth);
     }
 }
-
