@@ -606,24 +606,36 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
             return best;
         }
         for s in -half + 1..=half {
-            // Pooled over the pairs (Σ ab / √(Σ aa · Σ bb)), not the mean of each pair's
-            // correlation: a band without the weave's structure (a plain yarn-dyed stripe,
-            // FabricNET W022's cream bands) correlates with its neighbour near 0 and would
-            // count as much as a band of interlacings; pooled, each pair weighs by its energy.
-            let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
-            for (a, b) in bands.iter().zip(&bands[step..]) {
-                for x in 0..w as isize {
-                    let xs = x + s;
-                    if xs < 0 || xs >= w as isize {
-                        continue;
+            // Each pair's correlation weighed by the pair's energy `√(Σaa · Σbb)`, capped at the
+            // median pair's: a band without the weave's structure (a plain yarn-dyed stripe,
+            // FabricNET W022's cream bands) correlates with its neighbour near 0 and must not
+            // count as much as a band of interlacings (the plain mean of the correlations let it),
+            // and a stain or a fold, far more energetic than any band of yarns, must not outvote
+            // the rest (the uncapped, pooled sum let it).
+            let sums: Vec<(f64, f64)> = bands
+                .iter()
+                .zip(&bands[step..])
+                .map(|(a, b)| {
+                    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+                    for x in 0..w as isize {
+                        let xs = x + s;
+                        if xs < 0 || xs >= w as isize {
+                            continue;
+                        }
+                        let (u, v) = (a[x as usize], b[xs as usize]);
+                        ab += u * v;
+                        aa += u * u;
+                        bb += v * v;
                     }
-                    let (u, v) = (a[x as usize], b[xs as usize]);
-                    ab += u * v;
-                    aa += u * u;
-                    bb += v * v;
-                }
-            }
-            let c = if aa > 0.0 && bb > 0.0 { ab / (aa * bb).sqrt() } else { 0.0 };
+                    let e = (aa * bb).sqrt();
+                    (if e > 0.0 { ab / e } else { 0.0 }, e)
+                })
+                .collect();
+            let mut energies: Vec<f64> = sums.iter().map(|&(_, e)| e).collect();
+            energies.sort_by(f64::total_cmp);
+            let cap = energies[energies.len() / 2];
+            let (num, den) = sums.iter().fold((0.0, 0.0), |(n, d), &(c, e)| (n + c * e.min(cap), d + e.min(cap)));
+            let c = if den > 0.0 { num / den } else { 0.0 };
             if c > best.1 {
                 best = (s, c);
             }
