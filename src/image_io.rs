@@ -177,17 +177,6 @@ impl Image {
         self.data[(y * self.width + x) as usize]
     }
 
-    /// Bilinear sample at pixel position `(x, y)` (pixel centres at integers), clamped to the image.
-    pub fn bilinear(&self, x: f64, y: f64) -> [f32; 3] {
-        let x = if x.is_finite() { x.clamp(0.0, (self.width - 1) as f64) } else { 0.0 };
-        let y = if y.is_finite() { y.clamp(0.0, (self.height - 1) as f64) } else { 0.0 };
-        let (x0, y0) = (x.floor() as u32, y.floor() as u32);
-        let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
-        let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
-        let (p00, p10, p01, p11) = (self.get(x0, y0), self.get(x1, y0), self.get(x0, y1), self.get(x1, y1));
-        [0, 1, 2].map(|k| (1.0 - fy) * ((1.0 - fx) * p00[k] + fx * p10[k]) + fy * ((1.0 - fx) * p01[k] + fx * p11[k]))
-    }
-
     /// 8-bit sRGB encoding.
     pub fn to_srgb8(&self) -> image::RgbImage {
         image::RgbImage::from_fn(self.width, self.height, |x, y| {

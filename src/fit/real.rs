@@ -262,8 +262,8 @@ impl RealReport {
 pub fn periodic_ceiling(prepared: &Prepared, photo: &Image) -> f32 {
     let p = prepared;
     let inv = crate::math::linalg::mat3_inv(&p.homography).unwrap_or(crate::math::linalg::IDENTITY);
-    let reg = Image::from_rgb32f(&p.regularized);
-    let (w, h) = (reg.width as f64, reg.height as f64);
+    let (rw, rh) = (p.regularized.width() as usize, p.regularized.height() as usize);
+    let (w, h) = (rw as f64, rh as f64);
     // A coordinate outside [0, n − 1] moved by whole periods to inside (clamped on an axis without
     // a repeat, or one too short for it).
     let wrap = |a: f64, n: f64, period: f32, repeated: bool| -> f64 {
@@ -282,7 +282,9 @@ pub fn periodic_ceiling(prepared: &Prepared, photo: &Image) -> f32 {
             let s = p.drift.shift_at(u, v);
             let a = wrap(u - s[0], w, p.period_x, p.repeated_x);
             let b = wrap(v - s[1], h, p.period_y, p.repeated_y);
-            data.push(reg.bilinear(a, b));
+            let mut px = [0.0f32; 3];
+            crate::prep::image_ops::sample_into(p.regularized.as_raw(), rw, rh, 3, a, b, &mut px);
+            data.push(px);
         }
     }
     Image::new(photo.width, photo.height, data).psnr_srgb(photo)

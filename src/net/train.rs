@@ -1052,16 +1052,23 @@ pub(crate) mod tests {
         assert_eq!(chance_error(&[0.3; 5]), 0.0);
     }
 
+    /// A `tiny_spec` network built with `seed` and saved in a temporary folder (the base of a
+    /// warm start): the folder, the file and the network.
+    fn saved_base(seed: u64) -> (tempfile::TempDir, std::path::PathBuf, model::PreNet) {
+        let dir = tempfile::tempdir().unwrap();
+        let base_spec = tiny_spec();
+        let (base_vm, base_net) = model::build(&base_spec, seed).unwrap();
+        let path = dir.path().join("base.safetensors");
+        save_model(&path, &base_vm, &base_spec, None).unwrap();
+        (dir, path, base_net)
+    }
+
     #[test]
     fn warm_start_keeps_the_base_function_and_rejects_other_shapes() {
         // A base network saved to a file; the grown network adds the orientation planes and two
         // dilated residual cell convs. After `warm_start` both give the same logits and outputs
         // on a random batch (the new planes' weights and the residual branches are zero).
-        let dir = tempfile::tempdir().unwrap();
-        let base_spec = tiny_spec();
-        let (base_vm, base_net) = model::build(&base_spec, 11).unwrap();
-        let path = dir.path().join("base.safetensors");
-        save_model(&path, &base_vm, &base_spec, None).unwrap();
+        let (dir, path, base_net) = saved_base(11);
         let mut grown = tiny_spec();
         (grown.orientation_channels, grown.cell_residual) = (true, true);
         (grown.cell_convs, grown.cell_dilations) = (vec![16, 16, 16], vec![1, 2, 4]);
@@ -1097,11 +1104,7 @@ pub(crate) mod tests {
     fn warm_start_keeps_the_outputs_both_models_have_and_starts_new_ones_at_zero() {
         // Base outputs (red, rows); the new head reads (blue, red): `red` keeps its mean and
         // log-variance, `blue` starts at σ(0) = 0.5 with log-variance 0; the cells are unchanged.
-        let dir = tempfile::tempdir().unwrap();
-        let base_spec = tiny_spec();
-        let (base_vm, base_net) = model::build(&base_spec, 21).unwrap();
-        let path = dir.path().join("base.safetensors");
-        save_model(&path, &base_vm, &base_spec, None).unwrap();
+        let (_dir, path, base_net) = saved_base(21);
         let mut spec = tiny_spec();
         spec.outputs = vec![OutputSpec::continuous("blue", 0.0, 1.0), OutputSpec::continuous("red", 0.0, 1.0)];
         let (vm, net) = model::build(&spec, 22).unwrap();

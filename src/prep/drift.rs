@@ -20,6 +20,8 @@
 use image::Rgb32FImage;
 use serde::Serialize;
 
+use super::image_ops::sample_into;
+
 /// The slow departures of the photo from the periodic mean repeat, in rectified pixels. The
 /// default is none.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
@@ -76,16 +78,7 @@ impl RepeatDrift {
             for x in 0..w {
                 let (u, v) = (x as f64, y as f64);
                 let s = self.shift_at(u, v);
-                let (sx, sy) = ((u - s[0]).clamp(0.0, (w - 1) as f64), (v - s[1]).clamp(0.0, (h - 1) as f64));
-                let (x0, y0) = (sx.floor() as usize, sy.floor() as usize);
-                let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-                let (fx, fy) = ((sx - x0 as f64) as f32, (sy - y0 as f64) as f32);
-                for c in 0..3 {
-                    let at = |xx: usize, yy: usize| src[(yy * w + xx) * 3 + c];
-                    let top = at(x0, y0) + fx * (at(x1, y0) - at(x0, y0));
-                    let bot = at(x0, y1) + fx * (at(x1, y1) - at(x0, y1));
-                    row[x * 3 + c] = top + fy * (bot - top);
-                }
+                sample_into(src, w, h, 3, u - s[0], v - s[1], &mut row[x * 3..x * 3 + 3]);
             }
         }
         Rgb32FImage::from_raw(w as u32, h as u32, out).expect("size")

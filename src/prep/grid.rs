@@ -596,8 +596,8 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
     if strength < 0.3 {
         return None;
     }
-    // The shift of each band against the one `step` lines on, summed over the pairs: the best
-    // (signed shift, mean correlation).
+    // The shift of each band against the one `step` lines on, over the pairs: the best (signed
+    // shift, weighted mean correlation).
     let half = (period / 2.0).floor() as isize;
     let best_shift = |step: usize| {
         let mut best = (0isize, f64::MIN);

@@ -116,7 +116,7 @@ pub fn blur_gray(g: &Gray, sigma: f32) -> Gray {
 
 /// Bilinear sample of channel-interleaved data at `(x, y)` (pixel centres at integers), clamped.
 #[inline]
-fn sample_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
+pub(crate) fn sample_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
     let xf = x.clamp(0.0, (w - 1) as f64);
     let yf = y.clamp(0.0, (h - 1) as f64);
     let x0 = (xf.floor() as usize).min(w.saturating_sub(2));

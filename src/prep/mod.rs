@@ -237,8 +237,8 @@ pub struct Prepared {
     pub n_a: usize,
     /// Minimum-pattern crop aligned to the yarn boundaries: `n_a` pitches by `n_e` pitches.
     pub crop: CropRect,
-    /// Where each repeat of the rectified photo sits against the mean repeat, and how brightly it
-    /// is lit ([`RepeatDrift`]): what `regularized` leaves out and the registered fit puts back.
+    /// Where each repeat of the rectified photo sits against the mean repeat ([`RepeatDrift`]):
+    /// what `regularized` leaves out and the registered fit puts back.
     pub drift: RepeatDrift,
 }
 

@@ -209,8 +209,8 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 /// Mean of the aligned repeats of an (already blurred) image; see the module docs. `pitch` is
 /// the yarn pitch along x and y (it bounds the alignment shift), the periods are the DMF's
-/// (the whole extent on an axis without a repeat). Also returns where each repeat sat and how
-/// bright it was ([`RepeatDrift`]), which the mean leaves out and the registered fit puts back.
+/// (the whole extent on an axis without a repeat). Also returns where each repeat sat
+/// ([`RepeatDrift`]), which the mean leaves out and the registered fit puts back.
 pub fn mean_of_repeats(
     img: &Rgb32FImage,
     pitch: [f32; 2],
