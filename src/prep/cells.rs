@@ -26,7 +26,7 @@
 //! 1.5–2 times can be taken on stronger evidence (a near copy, [`MIN_PARTIAL_CORR`]; see
 //! [`CellMatrix::partial_repeat`]).
 
-use super::image_ops::Gray;
+use super::image_ops::{median, Gray};
 
 /// Smallest correlation of the cell matrix with its shifted copy for the shift to be a repeat.
 /// The repeats of real plains measured 0.44–0.7 (fibre, yarn irregularity); what keeps partial
@@ -62,6 +62,14 @@ fn cells_along(phase: f64, pitch: f64, extent: usize) -> (f64, usize) {
     (start, n)
 }
 
+/// `log(g + ε)` at a pixel of `g`, ε = 2 % of the image's mean: dark gaps and sensor noise do
+/// not dominate the log (as in `grid::edge_energy`).
+fn log_luminance(g: &Gray) -> impl Fn(usize, usize) -> f64 + '_ {
+    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
+    let eps = (0.02 * mean).max(1e-6);
+    move |x, y| (g.data[y * g.w + x] as f64 + eps).max(eps).ln()
+}
+
 /// The cell matrix of the grey image `g` for the grid `pitch`/`phase` (x, y). `None` when fewer
 /// than 4 cells fit along an axis or the pitch is below 4 px.
 pub fn cell_matrix(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<CellMatrix> {
@@ -73,10 +81,7 @@ pub fn cell_matrix(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<CellMat
     if cols < 4 || rows < 4 {
         return None;
     }
-    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
-    // ε keeps dark gaps and sensor noise from dominating the log (as in `grid::edge_energy`).
-    let eps = (0.02 * mean).max(1e-6);
-    let lg = |x: usize, y: usize| (g.data[y * g.w + x] as f64 + eps).max(eps).ln();
+    let lg = log_luminance(g);
     let mut o = Vec::with_capacity(rows * cols);
     for r in 0..rows {
         for c in 0..cols {
@@ -141,10 +146,7 @@ pub fn float_end_matrix(g: &Gray, pitch: [f64; 2], phase: [f64; 2], floats_x: bo
     if lines < 4 || bounds.len() < 4 {
         return None;
     }
-    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
-    // ε as in `cell_matrix`: dark gaps and sensor noise do not dominate the log.
-    let eps = (0.02 * mean).max(1e-6);
-    let lg = |x: usize, y: usize| (g.data[y * g.w + x] as f64 + eps).max(eps).ln();
+    let lg = log_luminance(g);
     let mut o = Vec::with_capacity(lines * bounds.len());
     for r in 0..lines {
         let ya = (y0 + (r as f64 + 0.25) * pitch[1]).ceil() as usize;
@@ -164,9 +166,7 @@ pub fn float_end_matrix(g: &Gray, pitch: [f64; 2], phase: [f64; 2], floats_x: bo
                 e[xa..=xe].iter().sum::<f64>() / (xe - xa + 1) as f64
             })
             .collect();
-        let mut sorted = row.clone();
-        sorted.sort_by(f64::total_cmp);
-        let med = sorted[sorted.len() / 2].max(1e-12);
+        let med = median(row.clone()).max(1e-12);
         o.extend(row.iter().map(|v| v / med));
     }
     let (rows, cols) = (lines, bounds.len());
@@ -330,12 +330,11 @@ impl CellMatrix {
 /// How far the correlation `v` of a shift stands above the median correlation of the shifts
 /// `other` selects among `c` (`(shift, correlation)` pairs); `None` when it selects none.
 fn excess_over_median(c: &[(usize, f64)], v: f64, other: impl Fn(usize) -> bool) -> Option<f64> {
-    let mut others: Vec<f64> = c.iter().filter(|x| other(x.0)).map(|x| x.1).collect();
+    let others: Vec<f64> = c.iter().filter(|x| other(x.0)).map(|x| x.1).collect();
     if others.is_empty() {
         return None;
     }
-    others.sort_by(f64::total_cmp);
-    Some(v - others[others.len() / 2])
+    Some(v - median(others))
 }
 
 #[cfg(test)]

@@ -29,7 +29,7 @@
 
 use serde::Serialize;
 
-use super::image_ops::{gaussian_kernel, parabola_offset, Gray};
+use super::image_ops::{gaussian_kernel, median, parabola_offset, Gray};
 
 /// Grid along one axis.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -631,9 +631,7 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
                     (if e > 0.0 { ab / e } else { 0.0 }, e)
                 })
                 .collect();
-            let mut energies: Vec<f64> = sums.iter().map(|&(_, e)| e).collect();
-            energies.sort_by(f64::total_cmp);
-            let cap = energies[energies.len() / 2];
+            let cap = median(sums.iter().map(|&(_, e)| e).collect());
             let (num, den) = sums.iter().fold((0.0, 0.0), |(n, d), &(c, e)| (n + c * e.min(cap), d + e.min(cap)));
             let c = if den > 0.0 { num / den } else { 0.0 };
             if c > best.1 {

@@ -161,6 +161,13 @@ pub fn warp_gray(g: &Gray, h: &Homography, out_w: usize, out_h: usize) -> Gray {
     Gray { w: out_w, h: out_h, data: out }
 }
 
+/// Median of a non-empty list (the upper median for an even count: the element a sort puts at
+/// `len / 2`).
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+}
+
 /// Peak position refinement: vertex offset in `[-0.5, 0.5]` of the parabola through
 /// `(−1, a), (0, b), (1, c)`.
 #[inline]

@@ -37,7 +37,7 @@ pub use drift::RepeatDrift;
 pub use regularize::RepeatParams;
 
 use grid::{analyze_axis, AxisGrid};
-use image_ops::{blur_gray, blur_rgb, Gray};
+use image_ops::{blur_gray, blur_rgb, median, Gray};
 use period::{detect_period, PitchBaseline};
 
 /// Smallest accepted image side, in pixels.
@@ -441,9 +441,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     //     same family on top, read from where its floats end (`cells::float_end_matrix`).
     if !per_x.repeated && !per_y.repeated {
         if let Some(m) = &cm {
-            let mut faced = m.o.clone();
-            faced.sort_by(f64::total_cmp);
-            let floats_x = faced[faced.len() / 2] > 0.0;
+            let floats_x = median(m.o.clone()) > 0.0;
             let pitch = [ax0.pitch as f64, ay0.pitch as f64];
             if let Some(f) = cells::float_end_matrix(&gb, pitch, [ax0.phase as f64, ay0.phase as f64], floats_x) {
                 let found = [true, false].map(|axis_x| f.repeat(axis_x, opts.max_photo_yarns));

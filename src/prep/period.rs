@@ -244,8 +244,7 @@ impl PitchBaseline {
         if base.len() < 2 {
             return None;
         }
-        base.sort_by(|a, b| a.total_cmp(b));
-        Some(rho(d) - base[base.len() / 2])
+        Some(rho(d) - super::image_ops::median(base))
     }
 }
 

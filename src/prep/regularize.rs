@@ -44,7 +44,7 @@ use image::Rgb32FImage;
 use rayon::prelude::*;
 
 use super::drift::RepeatDrift;
-use super::image_ops::{blur_rgb, parabola_offset, Gray};
+use super::image_ops::{blur_rgb, median, parabola_offset, Gray};
 
 /// Largest alignment shift searched, pixels (cost grows with its square).
 pub const MAX_SHIFT_PX: i32 = 8;
@@ -199,12 +199,6 @@ fn median_of(vs: &[&Vec<f32>]) -> Vec<f32> {
             *col.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
         })
         .collect()
-}
-
-/// Median of a list (upper median for an even count).
-fn median(mut v: Vec<f64>) -> f64 {
-    let mid = v.len() / 2;
-    *v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
 }
 
 /// Mean of the aligned repeats of an (already blurred) image; see the module docs. `pitch` is
