@@ -75,3 +75,33 @@ fn missing_files_and_unknown_presets_fail_cleanly() {
     let out = woven(&["params", "--preset", "10/1"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("ragged"));
 }
+
+/// `woven prep PHOTO | head -1`: the reader leaves after one line. The pipe is closed before the
+/// process starts, so every write to stdout fails with `BrokenPipe`; the command must still run to
+/// its end (files written, exit 0) instead of panicking in `println!` (exit 101).
+#[test]
+fn a_closed_stdout_pipe_neither_panics_nor_stops_the_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = dir.path().join("p.json");
+    let out = woven(&["params", "--preset", "plain"]);
+    assert!(out.status.success());
+    std::fs::write(&params, &out.stdout).unwrap();
+    let photo = dir.path().join("r.png");
+    let args = ["render", "--params", params.to_str().unwrap(), "--out", photo.to_str().unwrap()];
+    let out = woven(&[&args[..], &["--width", "96", "--height", "96", "--spp", "2", "--tiles", "4"]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+
+    let prep_dir = dir.path().join("prep");
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let out = Command::new(env!("CARGO_BIN_EXE_woven"))
+        .args(["prep", photo.to_str().unwrap(), "--out", prep_dir.to_str().unwrap()])
+        .env("RUST_BACKTRACE", "0")
+        .stdout(writer)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "exit {:?}: {stderr}", out.status.code());
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(prep_dir.join("prep.json").is_file() && prep_dir.join("crop.png").is_file());
+}

@@ -2,6 +2,7 @@
 //! printed and written as a section of a markdown file (`docs/benchmarks.md`).
 
 use super::progress::IndicatifProgress;
+use super::stdout::out;
 use anyhow::{bail, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -21,7 +22,7 @@ pub struct BenchArgs {
 /// `woven bench`.
 pub fn run_bench(a: &BenchArgs) -> Result<()> {
     let md = woven::bench::run(a.quick, &IndicatifProgress::new(true))?;
-    print!("{md}");
+    out!("{md}");
     replace_section(&a.out, "Forward model", &md)?;
     eprintln!("wrote {}", a.out.display());
     Ok(())
@@ -45,7 +46,7 @@ pub struct StressArgs {
 pub fn run_stress(a: &StressArgs) -> Result<()> {
     let rep = woven::stress::stress(a.count, a.seed, &IndicatifProgress::new(true));
     let md = rep.markdown(a.count, a.seed);
-    print!("{md}");
+    out!("{md}");
     replace_section(&a.out, "Numerical stress", &md)?;
     if !rep.clean() {
         bail!("{} non-finite and {} negative values found", rep.non_finite, rep.negative);

@@ -1,5 +1,6 @@
 //! `woven export`: yarn geometry for other renderers (PLY curves and tubes, Mitsuba 3 scene).
 
+use super::stdout::outln;
 use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
@@ -59,7 +60,7 @@ pub fn run(args: &ExportArgs) -> Result<()> {
         ascii: args.ascii,
     };
     let s = export(&params, &args.out, &opts)?;
-    println!(
+    outln!(
         "exported {}x{} repeats ({} weft + {} warp curves) to {}{}",
         s.repeats[0],
         s.repeats[1],
@@ -68,8 +69,8 @@ pub fn run(args: &ExportArgs) -> Result<()> {
         s.dir.display(),
         if s.clamped { " (view clamped)" } else { "" }
     );
-    println!("  files: {}", s.files.join(", "));
-    println!("  units: pitch = {} (renderer units); open scene.xml with mitsuba.load_file", s.pitch);
+    outln!("  files: {}", s.files.join(", "));
+    outln!("  units: pitch = {} (renderer units); open scene.xml with mitsuba.load_file", s.pitch);
     Ok(())
 }
 

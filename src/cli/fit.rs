@@ -2,6 +2,7 @@
 //! the library's fit ([`woven::fit`]).
 
 use super::progress::IndicatifProgress;
+use super::stdout::outln;
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -276,12 +277,14 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     staging.install(&dest)?;
     print_fit(&args.image, &dest, &res);
     if let Some((s, ceiling)) = scores {
-        println!(
+        outln!(
             "fit.png against the whole photo: PSNR {:.2} dB, SSIM {:.3} (the crop the fit matched: PSNR {:.2} dB)",
-            s.psnr_db, s.ssim, res.psnr_db
+            s.psnr_db,
+            s.ssim,
+            res.psnr_db
         );
         if let Some(c) = ceiling {
-            println!(
+            outln!(
                 "periodic ceiling of this photo: {c:.2} dB (its own mean repeat, registered like fit.png; what differs \
                  between the repeats — hair, wandering yarns — no periodic replica reproduces)"
             );
@@ -524,7 +527,7 @@ impl Drop for Staging {
 /// The one-line summary of a fit.
 fn print_fit(image: &Path, out: &Path, res: &FitResult) {
     let c = &res.params.cloth;
-    println!(
+    outln!(
         "{}{}: pattern {} ({}×{}), n_p {}, n_f {}, r_e {:.2}, r_a {:.2}, PSNR {:.2} dB, {:.1} s (prep {:.1}, pre {:.1}, opt {:.1}) -> {}",
         image.display(),
         if res.stopped { " (stopped early: best so far)" } else { "" },
@@ -542,7 +545,7 @@ fn print_fit(image: &Path, out: &Path, res: &FitResult) {
         res.timings[2],
         out.display()
     );
-    println!("  stages: {}", woven::fit::stages_line(&res.stages));
+    outln!("  stages: {}", woven::fit::stages_line(&res.stages));
 }
 
 /// Recovered against true parameters, each error in % of its range.
@@ -593,16 +596,16 @@ pub fn run_demo(out_dir: &Path, fast: bool) -> Result<()> {
     })?;
     staging.install(out_dir)?;
     let exact = res.cloth.pattern.reduced().equivalent(&truth.pattern);
-    println!("{}", fmt_table(&res.cloth, &truth));
-    println!(
+    outln!("{}", fmt_table(&res.cloth, &truth));
+    outln!(
         "pattern: true {}  fit {}  ({})",
         truth.pattern,
         res.params.cloth.pattern,
         if exact { "exact up to shift" } else { "DIFFERENT" }
     );
-    println!("pre-estimated pattern: {}", res.pre_pattern);
+    outln!("pre-estimated pattern: {}", res.pre_pattern);
     let errs: Vec<f32> = param_errors(&res.cloth, &truth).iter().map(|e| e.1).collect();
-    println!(
+    outln!(
         "demo: psnr_db={:.2} median_err={:.3} pattern_exact={} wall_s={:.1} -> {}",
         res.psnr_db,
         quantile(&errs, 0.5),
@@ -728,7 +731,7 @@ pub fn run_eval(args: &EvalArgs) -> Result<()> {
     }
     let rep = eval(&args.to_options(), &mut |i, truth, case| match &case.error {
         Some(e) => eprintln!("target {i}: fit failed: {e}"),
-        None => println!(
+        None => outln!(
             "target {i}: true {} ({}×{}) fit {} exact={} grid_ok={} median_err={:.3} psnr={:.1} dB {:.1} s",
             truth.pattern,
             truth.pattern.n_e(),
@@ -747,11 +750,11 @@ pub fn run_eval(args: &EvalArgs) -> Result<()> {
 /// The end of every `woven eval`: the markdown table, appended to `markdown` when given, then
 /// the summary line, last.
 fn print_report(md: &str, summary: &str, markdown: Option<&Path>) -> Result<()> {
-    println!("\n{md}");
+    outln!("\n{md}");
     if let Some(p) = markdown {
         append_markdown(p, md)?;
     }
-    println!("{summary}");
+    outln!("{summary}");
     Ok(())
 }
 
@@ -773,7 +776,7 @@ fn run_eval_renders(dir: &Path, args: &EvalArgs) -> Result<()> {
     opts.render.seed = args.seed;
     let rep = eval_renders(dir, &opts, args.save.as_ref(), &mut |c| match &c.error {
         Some(e) => eprintln!("{}: fit failed: {e}", c.name),
-        None => println!(
+        None => outln!(
             "{}: true {} fit {} exact={} crop_psnr={:.1} dB colour_err={} {:.1} s{}",
             c.name,
             c.truth,
@@ -805,7 +808,7 @@ fn run_eval_real(dir: &Path, args: &EvalArgs) -> Result<()> {
     let opts = RealOptions { fit, estimate_lights: args.lights.is_none(), limit: args.limit, save: args.save.clone() };
     let rep = eval_real(dir, &opts, &mut |c| match &c.error {
         Some(e) => eprintln!("{}: label {} failed ({:.1} s): {e}", c.path, c.label, c.secs),
-        None => println!(
+        None => outln!(
             "{}: label {} class {} pattern {} capture {} photo_psnr={} (ceiling {}) ssim={} crop_psnr={} {:.1} s",
             c.path,
             c.label,
@@ -824,7 +827,7 @@ fn run_eval_real(dir: &Path, args: &EvalArgs) -> Result<()> {
         if let Some(sheet) = rep.sheet() {
             let path = save.join("sheet.png");
             sheet.save_png(&path)?;
-            println!(
+            outln!(
                 "contact sheet (photo | fit | error ×4; failed photos: photo | preparation overlay): {}",
                 path.display()
             );

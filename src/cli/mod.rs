@@ -11,6 +11,7 @@ pub mod net;
 pub mod prep;
 pub mod progress;
 pub mod render;
+pub mod stdout;
 
 use anyhow::{Context, Result};
 use std::path::Path;

@@ -1,6 +1,7 @@
 //! `woven train` and `woven predict`: the pre-estimator network.
 
 use super::progress::IndicatifProgress;
+use super::stdout::outln;
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -50,12 +51,12 @@ pub fn run_train(a: &TrainArgs) -> Result<()> {
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let outcome = train_model(&opts, &IndicatifProgress::new(true))?;
-    println!("trained on {} images in {:.0} s -> {}", outcome.images, outcome.seconds, outcome.model.display());
+    outln!("trained on {} images in {:.0} s -> {}", outcome.images, outcome.seconds, outcome.model.display());
     for c in &outcome.copies {
-        println!("  copied to {}", c.display());
+        outln!("  copied to {}", c.display());
     }
     if outcome.copies.is_empty() {
-        println!("  (the shipped model is unchanged; --ship replaces it, --out copies the weights elsewhere)");
+        outln!("  (the shipped model is unchanged; --ship replaces it, --out copies the weights elsewhere)");
     }
     Ok(())
 }
@@ -104,12 +105,12 @@ fn parse_grid(s: &str) -> Result<(usize, usize), String> {
 fn print_outputs(outputs: &[PredictedOutput]) {
     // The widest name sets the column (`chroma_b_e[0]` is 13 characters).
     let w = outputs.iter().map(|o| o.name.len()).max().unwrap_or(0).max(10);
-    println!("{:<w$} {:>9} {:>9}", "parameter", "value", "± σ");
+    outln!("{:<w$} {:>9} {:>9}", "parameter", "value", "± σ");
     for o in outputs {
         if o.integer {
-            println!("{:<w$} {:>9} {:>9.2}", o.name, o.value.round() as i64, o.sigma);
+            outln!("{:<w$} {:>9} {:>9.2}", o.name, o.value.round() as i64, o.sigma);
         } else {
-            println!("{:<w$} {:>9.4} {:>9.4}", o.name, o.value, o.sigma);
+            outln!("{:<w$} {:>9.4} {:>9.4}", o.name, o.value, o.sigma);
         }
     }
 }
@@ -128,12 +129,12 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
     if a.view {
         let p = model.predict(&img.to_rgb32f())?;
         if a.json {
-            println!("{}", serde_json::to_string_pretty(&p)?);
+            outln!("{}", serde_json::to_string_pretty(&p)?);
             return Ok(());
         }
-        println!("cells of the view (rows from the top; 1 = weft on top, 0 = warp on top):");
+        outln!("cells of the view (rows from the top; 1 = weft on top, 0 = warp on top):");
         for row in &p.cell_logits {
-            println!("  {}", row.iter().map(|&l| if l > 0.0 { '1' } else { '0' }).collect::<String>());
+            outln!("  {}", row.iter().map(|&l| if l > 0.0 { '1' } else { '0' }).collect::<String>());
         }
         print_outputs(&p.outputs);
         return Ok(());
@@ -153,21 +154,21 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
     };
     let v = read_view(&model, &target, n_e, n_a)?;
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&v)?);
+        outln!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
     let rows: Vec<String> = v.cells().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
-    println!("pattern read ({n_e}×{n_a} cells; row i = weft i, 1 = weft over warp): {}", rows.join("/"));
+    outln!("pattern read ({n_e}×{n_a} cells; row i = weft i, 1 = weft over warp): {}", rows.join("/"));
     let weakest = (0..n_e)
         .flat_map(|i| (0..n_a).map(move |j| (i, j)))
         .map(|(i, j)| (v.probability(i, j).max(1.0 - v.probability(i, j)), i, j))
         .min_by(|x, y| x.0.total_cmp(&y.0));
     if let Some((p, i, j)) = weakest {
-        println!("least certain cell: weft {i}, warp {j} (p = {p:.3})");
+        outln!("least certain cell: weft {i}, warp {j} (p = {p:.3})");
     }
     match v.pattern() {
-        Ok(p) => println!("as a weave: {p} ({}×{} minimum repeat)", p.n_e(), p.n_a()),
-        Err(e) => println!("as a weave: none ({e})"),
+        Ok(p) => outln!("as a weave: {p} ({}×{} minimum repeat)", p.n_e(), p.n_a()),
+        Err(e) => outln!("as a weave: none ({e})"),
     }
     // What the fit starts from when the two yarn families differ in colour
     // (`fit::preestimate::network_reading`).
@@ -175,9 +176,9 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
         Some(pooled) => {
             let rows: Vec<String> =
                 pooled.cells().iter().map(|r| r.iter().map(|&b| if b { '1' } else { '0' }).collect()).collect();
-            println!("pooled by colour (two separate colour groups): {}", rows.join("/"));
+            outln!("pooled by colour (two separate colour groups): {}", rows.join("/"));
         }
-        None => println!("pooled by colour: not applied (no two clearly separate colour groups)"),
+        None => outln!("pooled by colour: not applied (no two clearly separate colour groups)"),
     }
     print_outputs(&v.outputs);
     Ok(())

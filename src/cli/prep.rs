@@ -1,6 +1,7 @@
 //! `woven prep`: rectify, regularize, find the yarn grid and the minimum pattern of a photo; with
 //! `--survey`, the grid found on many images against their truth (`woven::prep::survey`).
 
+use super::stdout::outln;
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -75,8 +76,8 @@ pub fn run(a: &PrepArgs) -> Result<()> {
             // The pool may already exist (tests); the renders get `threads` either way.
             let _ = rayon::ThreadPoolBuilder::new().num_threads(t).build_global();
         }
-        let report = woven::prep::survey::survey(&so, &mut |c| println!("{}", c.line()))?;
-        println!("{}", report.summary_line());
+        let report = woven::prep::survey::survey(&so, &mut |c| outln!("{}", c.line()))?;
+        outln!("{}", report.summary_line());
         return Ok(());
     }
     let (Some(image), Some(out)) = (&a.image, &a.out) else {
@@ -88,7 +89,7 @@ pub fn run(a: &PrepArgs) -> Result<()> {
         .with_context(|| format!("preparing {} ({}x{} px)", image.display(), img.width, img.height))?;
     let secs = t0.elapsed().as_secs_f64();
     p.save(out)?;
-    println!(
+    outln!(
         "{}: angle {:.2}°, pitch {:.1}×{:.1} px, period {:.1}×{:.1} px, n_e×n_a = {}×{}, crop {}×{} at ({}, {}) in {:.2} s -> {}",
         image.display(),
         p.angle_deg,
@@ -106,7 +107,7 @@ pub fn run(a: &PrepArgs) -> Result<()> {
         out.display()
     );
     // How periodic the photo is: the prepared picture (each repeat at its drift) against the photo.
-    println!(
+    outln!(
         "  repeats drift up to {:.1} px; the prepared periodic picture against the photo: {:.1} dB",
         p.drift.max_shift(),
         woven::fit::real::periodic_ceiling(&p, &img)

@@ -1,6 +1,7 @@
 //! `woven params`, `woven render`, `woven examples`: parameter files and images from them.
 
 use super::progress::IndicatifProgress;
+use super::stdout::{out, outln};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
@@ -39,7 +40,7 @@ pub fn run_params(a: &ParamsArgs) -> Result<()> {
     }
     pattern.check_woven()?;
     let rig: LightRig = a.lights.parse()?;
-    print!("{}", preset_param_file(pattern, rig).to_json() + "\n");
+    out!("{}", preset_param_file(pattern, rig).to_json() + "\n");
     Ok(())
 }
 
@@ -178,6 +179,6 @@ pub fn run_examples(a: &ExamplesArgs) -> Result<()> {
     let rows: Vec<Image> = imgs.chunks(3).map(|c| Image::hstack(&c.iter().collect::<Vec<_>>(), 4)).collect();
     let sheet = Image::vstack(&rows.iter().collect::<Vec<_>>(), 4);
     sheet.save_png(&a.out.join("examples.png"))?;
-    println!("wrote {} renders and examples.png to {}", EXAMPLES.len(), a.out.display());
+    outln!("wrote {} renders and examples.png to {}", EXAMPLES.len(), a.out.display());
     Ok(())
 }
