@@ -105,3 +105,23 @@ fn a_closed_stdout_pipe_neither_panics_nor_stops_the_job() {
     assert!(!stderr.contains("panicked"), "{stderr}");
     assert!(prep_dir.join("prep.json").is_file() && prep_dir.join("crop.png").is_file());
 }
+
+/// `woven prep` on a photo without a yarn grid: a clear refusal and a non-zero exit, what
+/// preparation saw written beside the output (`OUT.prep-grid.png`), and the output folder itself
+/// not created.
+#[test]
+fn a_refused_preparation_says_why_and_leaves_the_overlay() {
+    let dir = tempfile::tempdir().unwrap();
+    let photo = dir.path().join("grey.png");
+    image::RgbImage::from_pixel(96, 96, image::Rgb([120, 118, 110])).save(&photo).unwrap();
+    let out_dir = dir.path().join("prep");
+    let out = woven(&["prep", photo.to_str().unwrap(), "--out", out_dir.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("no periodic yarn structure found") && stderr.contains("try a sharp"), "{stderr}");
+    assert!(stderr.contains("prep.prep-grid.png"), "{stderr}");
+    let overlay = image::open(dir.path().join("prep.prep-grid.png")).expect("the overlay is a PNG");
+    // The rectified photo: the input less a margin the rectification leaves out.
+    assert!((48..=96).contains(&overlay.width()) && (48..=96).contains(&overlay.height()));
+    assert!(!out_dir.exists(), "a refused preparation creates no output folder");
+}

@@ -19,7 +19,7 @@ use woven::fit::{check_input, fit, fit_prepared, write_fit_outputs, FitMode, Fit
 use woven::image_io::Image;
 use woven::params::{ClothParams, APPEARANCE_RANGES};
 use woven::pattern::{WeavePattern, MAX_SIDE};
-use woven::prep::{diagnostic_overlay, prepare, PrepOptions, Prepared};
+use woven::prep::{prepare, PrepOptions, Prepared};
 use woven::progress::Progress;
 use woven::scene::LightRig;
 
@@ -313,25 +313,14 @@ fn prepare_photo(input: &Image, image: &Path, out: &Path) -> Result<(Prepared, O
             let capture = estimate_capture(&p);
             Ok((p, capture))
         }
-        Err(e) => {
-            let mut msg = format!("preparing {}: {e}", image.display());
-            if let Some(ov) = diagnostic_overlay(&rgb, &PrepOptions::default()) {
-                let path = PathBuf::from(format!("{}.prep-grid.png", out.display().to_string().trim_end_matches('/')));
-                match Image::from_rgb32f(&ov).save_png(&path) {
-                    Ok(()) => {
-                        msg += &format!(
-                            "\nwhat preparation found (yarn boundaries in red, the repeat in green): {}",
-                            path.display()
-                        )
-                    }
-                    Err(w) => {
-                        msg += &format!("\n(the preparation overlay could not be written to {}: {w})", path.display())
-                    }
-                }
-            }
-            msg += "\n(--no-prep fits an image that is exactly one repeat)";
-            bail!(msg)
-        }
+        Err(e) => Err(super::prep::refusal(
+            &rgb,
+            &PrepOptions::default(),
+            image,
+            out,
+            &e,
+            "\n(--no-prep fits an image that is exactly one repeat)",
+        )),
     }
 }
 

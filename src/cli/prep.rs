@@ -2,10 +2,12 @@
 //! `--survey`, the grid found on many images against their truth (`woven::prep::survey`).
 
 use super::stdout::outln;
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
-use std::path::PathBuf;
+use image::Rgb32FImage;
+use std::path::{Path, PathBuf};
 use woven::image_io::Image;
+use woven::prep::{diagnostic_overlay, PrepError, PrepOptions};
 
 /// Arguments of `woven prep`.
 #[derive(Args, Debug)]
@@ -85,8 +87,11 @@ pub fn run(a: &PrepArgs) -> Result<()> {
     };
     let img = Image::load(image, woven::prep::MIN_SIZE)?;
     let t0 = std::time::Instant::now();
-    let p = woven::prep::prepare(&img.to_rgb32f(), &opts)
-        .with_context(|| format!("preparing {} ({}x{} px)", image.display(), img.width, img.height))?;
+    let rgb = img.to_rgb32f();
+    let p = woven::prep::prepare(&rgb, &opts).map_err(|e| {
+        let what = format!("{} ({}x{} px)", image.display(), img.width, img.height);
+        refusal(&rgb, &opts, Path::new(&what), out, &e, "")
+    })?;
     let secs = t0.elapsed().as_secs_f64();
     p.save(out)?;
     outln!(
@@ -113,4 +118,33 @@ pub fn run(a: &PrepArgs) -> Result<()> {
         woven::fit::real::periodic_ceiling(&p, &img)
     );
     Ok(())
+}
+
+/// The error of a photo preparation refused, with what preparation saw: the rectified photo with
+/// the yarn grid it found, written to `OUT.prep-grid.png` beside the output `out` (a new file: the
+/// output itself is not created), so the user sees in seconds why, and what to try. `hint` is
+/// appended to the message; `opts` are the preparation's options.
+pub fn refusal(
+    rgb: &Rgb32FImage,
+    opts: &PrepOptions,
+    image: &Path,
+    out: &Path,
+    e: &PrepError,
+    hint: &str,
+) -> anyhow::Error {
+    let mut msg = format!("preparing {}: {e}", image.display());
+    if let Some(ov) = diagnostic_overlay(rgb, opts) {
+        let path = PathBuf::from(format!("{}.prep-grid.png", out.display().to_string().trim_end_matches('/')));
+        match Image::from_rgb32f(&ov).save_png(&path) {
+            Ok(()) => {
+                msg += &format!(
+                    "\nwhat preparation found (yarn boundaries in red, the repeat in green): {}",
+                    path.display()
+                )
+            }
+            Err(w) => msg += &format!("\n(the preparation overlay could not be written to {}: {w})", path.display()),
+        }
+    }
+    msg += hint;
+    anyhow::anyhow!(msg)
 }
