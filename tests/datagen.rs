@@ -440,6 +440,38 @@ fn measure_speed_and_noise() {
     );
 }
 
+/// Without `--recipe`, `woven generate` uses the built-in copy of `datagen/recipe.toml`, from any
+/// folder (it used to look for that path relative to the working directory and fail outside a
+/// checkout): the manifest names the same recipe as the repository's file.
+#[test]
+fn the_built_in_recipe_is_the_repository_file_and_needs_no_checkout() {
+    let file = Recipe::from_str(&default_text()).unwrap();
+    assert_eq!(Recipe::embedded().to_toml(), file.to_toml());
+    let d = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_woven"))
+        .args(["generate", "--count", "2", "--size", "16", "--threads", "1", "--out", "set"])
+        .current_dir(d.path())
+        .env("RUST_BACKTRACE", "0")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let m: Manifest = serde_json::from_slice(&std::fs::read(d.path().join("set/manifest.json")).unwrap()).unwrap();
+    assert_eq!((m.count, m.image_size), (2, 16));
+    let with_file = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_woven"))
+        .args(["generate", "--count", "2", "--size", "16", "--threads", "1", "--out", "set", "--recipe"])
+        .arg(repo().join("datagen/recipe.toml"))
+        .current_dir(with_file.path())
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    assert_eq!(
+        std::fs::read(d.path().join("set/manifest.json")).unwrap(),
+        std::fs::read(with_file.path().join("set/manifest.json")).unwrap(),
+        "the built-in recipe and the file make the same manifest"
+    );
+}
+
 #[test]
 fn command_entry_point() {
     let d = tempfile::tempdir().unwrap();

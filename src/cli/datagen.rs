@@ -7,7 +7,6 @@ use clap::Args;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
-use woven::datagen::recipe::DEFAULT_RECIPE;
 use woven::datagen::{generate, GenerateOptions, Interrupted, Recipe};
 
 /// Arguments of `woven generate`.
@@ -19,9 +18,9 @@ pub struct GenerateArgs {
     /// Output directory (created; a rerun resumes, a larger --count extends).
     #[arg(long)]
     pub out: PathBuf,
-    /// Recipe file.
-    #[arg(long, default_value = DEFAULT_RECIPE)]
-    pub recipe: PathBuf,
+    /// Recipe file (default: the built-in copy of the repository's `datagen/recipe.toml`).
+    #[arg(long)]
+    pub recipe: Option<PathBuf>,
     /// Image side in pixels (default: the recipe's `image.size`).
     #[arg(long)]
     pub size: Option<u32>,
@@ -97,7 +96,10 @@ fn cancel_flag() -> Arc<AtomicBool> {
 }
 
 fn resume_command(args: &GenerateArgs) -> String {
-    let mut c = format!("woven generate --out {} --recipe {}", args.out.display(), args.recipe.display());
+    let mut c = format!("woven generate --out {}", args.out.display());
+    if let Some(r) = &args.recipe {
+        c += &format!(" --recipe {}", r.display());
+    }
     if let Some(n) = args.count {
         c += &format!(" --count {n}");
     }
@@ -118,7 +120,10 @@ fn resume_command(args: &GenerateArgs) -> String {
 
 /// `woven generate`.
 pub fn run(args: &GenerateArgs) -> Result<()> {
-    let recipe = Recipe::load(&args.recipe)?;
+    let recipe = match &args.recipe {
+        Some(path) => Recipe::load(path)?,
+        None => Recipe::embedded(),
+    };
     let mut opts = GenerateOptions::new(&args.out, recipe);
     opts.count = args.count;
     opts.size = args.size;

@@ -13,6 +13,10 @@ use std::path::Path;
 /// Default recipe path, relative to the repository root.
 pub const DEFAULT_RECIPE: &str = "datagen/recipe.toml";
 
+/// The text of [`DEFAULT_RECIPE`], built into the binary: `woven generate` without `--recipe` uses
+/// it, so the default set can be made from any folder (a cluster job's container has no checkout).
+pub const EMBEDDED_RECIPE_TOML: &str = include_str!("../../datagen/recipe.toml");
+
 /// Shape of a prior over `[lo, hi]`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -325,6 +329,12 @@ impl Recipe {
         let r: Recipe = toml::from_str(text).map_err(|e| anyhow::anyhow!("malformed recipe: {e}"))?;
         r.validate()?;
         Ok(r)
+    }
+
+    /// The built-in default recipe ([`EMBEDDED_RECIPE_TOML`], the repository's
+    /// `datagen/recipe.toml` when the binary was built).
+    pub fn embedded() -> Self {
+        Self::from_str(EMBEDDED_RECIPE_TOML).expect("the built-in recipe is valid (tested)")
     }
 
     /// Read, parse and validate a recipe file.
