@@ -119,6 +119,17 @@ fn eval_real_on_a_folder_of_renders() {
     let (clean, noisy) = (load("fit.png"), load("fit_noise.png"));
     assert!((clean.psnr_srgb(&photo_img) - scored).abs() < 0.2, "{} vs {scored}", clean.psnr_srgb(&photo_img));
     assert!(noisy.rmse(&clean) > 1e-3, "fit_noise.png carries the noise: rmse {}", noisy.rmse(&clean));
+    // fit_sharp.png: the same registered replica without the fit's blur — the photo's size, as
+    // close to fit.png as a blur moves it (a few dB), and sharper (more energy in pixel-to-pixel steps).
+    let sharp = load("fit_sharp.png");
+    assert_eq!((sharp.width, sharp.height), (clean.width, clean.height));
+    assert!(sharp.psnr_srgb(&clean) > 15.0, "{}", sharp.psnr_srgb(&clean));
+    let roughness = |im: &Image| {
+        (1..im.width)
+            .map(|x| (0..im.height).map(|y| (im.get(x, y)[1] - im.get(x - 1, y)[1]).abs()).sum::<f32>())
+            .sum::<f32>()
+    };
+    assert!(roughness(&sharp) > roughness(&clean), "{} vs {}", roughness(&sharp), roughness(&clean));
     // The fit is registered to the photo: on the contact sheet (160 px high, so the plain render's
     // 4 repeats of 2 yarns give a pitch of 20 px) it matches the photo better than itself moved by
     // one yarn, which swaps the yarn on top in every cell.

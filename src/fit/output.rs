@@ -1,6 +1,6 @@
 //! The fit's output stage: the final state (clamped to Table 1, rendered at `final_spp`, the
 //! pattern reduced, a scene that frames the input) and the files of a fit: `fit.json`,
-//! `prep.json`, `noise.json`, `fit.png`, `fit_noise.png`, `compare.png`, `trace.png`, `log.jsonl`, `export/`.
+//! `prep.json`, `noise.json`, `fit.png`, `fit_sharp.png`, `fit_noise.png`, `compare.png`, `trace.png`, `log.jsonl`, `export/`.
 
 use super::evaluator::Evaluator;
 use super::options::RenderSettings;
@@ -501,8 +501,9 @@ pub struct Written {
 }
 
 /// Write the files of a fit into `dir` (created): `fit.json`, `prep.json` (with preparation),
-/// `log.jsonl`, `stages.json` (`FitResult::stages`), `fit.png`, `fit_noise.png` (`fit.png` with `noise`
-/// added, when given), `compare.png`, `trace.png`. Returns the registered renders, the blurred one being
+/// `log.jsonl`, `stages.json` (`FitResult::stages`), `fit.png`, `fit_sharp.png` (with preparation:
+/// [`registered_render_sharp`]), `fit_noise.png` (`fit.png` with `noise` added, when given),
+/// `compare.png`, `trace.png`. Returns the registered renders, the blurred one being
 /// `fit.png` (`None` without preparation).
 pub fn write_outputs(
     res: &FitResult,
@@ -531,6 +532,12 @@ pub fn write_outputs(
         None => render(&res.params.cloth, &res.params.scene, &RenderOptions { threads, ..Default::default() }),
     };
     full.save_png(&dir.join("fit.png"))?;
+    // The same registered replica seen by a sharp camera: what the fitted cloth looks like when
+    // re-rendered (fibres and plies at the photo's resolution), beside fit.png, which carries the
+    // blur the fit compared with and is the image scored against the photo.
+    if let Some(r) = &registered {
+        r.sharp.save_png(&dir.join("fit_sharp.png"))?;
+    }
     // The synthesized photo noise goes to its own file: on a real photo the residual it models
     // holds everything the periodic fit leaves out (hair, uneven yarns, misregistration), often a
     // standard deviation of 0.2–0.3, which buries the cloth; fit.png stays the image whose PSNR
