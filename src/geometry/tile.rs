@@ -86,7 +86,8 @@ impl Capsule {
     }
 }
 
-/// Capsules per [`CapsuleGroup`]: one SSE register of `f32` lanes.
+/// Capsules per [`CapsuleGroup`]: one SSE register of `f32` lanes. Eight (two registers, boxes
+/// twice as long along the yarn) made a render 23 % slower (docs/benchmarks.md, session 15).
 const LANES: usize = 4;
 
 /// Four consecutive capsules of one chain (a yarn or a hair), stored lane by lane (structure of
