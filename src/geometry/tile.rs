@@ -11,7 +11,7 @@ use super::yarn::{Anchor, YarnSet, PITCH};
 /// Capsules per yarn per crossed cell. Shading uses the exact spline tube, so the capsule chain only
 /// has to find hits: 6 per cell keeps the chain within ~0.07 units of the tube (sagitta of the crimp).
 pub const SEGMENTS_PER_CELL: usize = 6;
-use glam::{Vec3, Vec3A};
+use glam::{Vec3, Vec3A, Vec4};
 use obvhs::{aabb::Aabb, cwbvh::CwBvh, ray::Ray, Boundable, BvhBuildParams};
 
 /// A capsule: the set of points within `r` of segment `a–b`, tagged with its yarn.
@@ -43,7 +43,10 @@ impl Capsule {
     }
 
     /// Entry distance along a unit-direction ray (near root); `INFINITY` if missed or if the origin
-    /// is inside (a ray leaving a tube does not "hit" it).
+    /// is inside (a ray leaving a tube does not "hit" it). The tracer tests capsules four at a
+    /// time (`CapsuleGroup::intersect`, the same operations lane-wise); this scalar form is the
+    /// reference its tests compare against.
+    #[cfg(test)]
     fn intersect(&self, o: Vec3A, d: Vec3A) -> f32 {
         let (ba, baba) = (self.ba, self.baba);
         let oa = o - self.a;
@@ -80,6 +83,125 @@ impl Capsule {
             }
         };
         sphere(self.a).min(sphere(self.b))
+    }
+}
+
+/// Capsules per [`CapsuleGroup`]: one SSE register of `f32` lanes. Eight (two registers, boxes
+/// twice as long along the yarn) made a render 23 % slower (docs/benchmarks.md, session 15).
+const LANES: usize = 4;
+
+/// Four consecutive capsules of one chain (a yarn or a hair), stored lane by lane (structure of
+/// arrays) so that one ray is tested against all four at once with 4-wide SIMD (glam's `Vec4`,
+/// SSE2 on x86-64). The BVH is built over groups: a quarter of the primitives, each box the union
+/// of its four capsules' (the chain is straight to within the crimp's sagitta over four short
+/// capsules, so the union is barely larger than one capsule's box).
+///
+/// Every lane computes exactly the scalar `Capsule::intersect`'s floating-point operations in the
+/// same order (glam's 3-vector dot is `(x·x' + y·y') + z·z'`, repeated here lane-wise; IEEE
+/// add, multiply, divide and square root round the same packed or scalar), and the branches
+/// become lane selects, so each lane's distance is the scalar test's to the bit.
+#[derive(Clone, Copy, Debug)]
+struct CapsuleGroup {
+    ax: Vec4,
+    ay: Vec4,
+    az: Vec4,
+    bx: Vec4,
+    by: Vec4,
+    bz: Vec4,
+    bax: Vec4,
+    bay: Vec4,
+    baz: Vec4,
+    baba: Vec4,
+    /// `1e-9·|b − a|²`: below it the segment is a point for the ray (the scalar test's threshold).
+    flat: Vec4,
+    rr_baba: Vec4,
+    rr: Vec4,
+    /// Index in `TileGeometry::caps` of each lane's capsule (a chain's last group repeats its
+    /// last capsule in the unused lanes: a duplicate answers the same distance, so the minimum
+    /// is unchanged).
+    idx: [u32; LANES],
+    yarn: u32,
+    lo: Vec3A,
+    hi: Vec3A,
+}
+
+impl Boundable for CapsuleGroup {
+    fn aabb(&self) -> Aabb {
+        Aabb::new(self.lo, self.hi)
+    }
+}
+
+impl CapsuleGroup {
+    /// The group of `caps[first..]` (up to [`LANES`] capsules of one chain, padded with the last).
+    fn new(caps: &[Capsule], first: usize, count: usize) -> Self {
+        let idx: [u32; LANES] = std::array::from_fn(|l| (first + l.min(count - 1)) as u32);
+        let c: [&Capsule; LANES] = idx.map(|i| &caps[i as usize]);
+        let lane = |f: &dyn Fn(&Capsule) -> f32| Vec4::new(f(c[0]), f(c[1]), f(c[2]), f(c[3]));
+        let (mut lo, mut hi) = (Vec3A::splat(f32::INFINITY), Vec3A::splat(f32::NEG_INFINITY));
+        for k in c {
+            let b = k.aabb();
+            lo = lo.min(b.min);
+            hi = hi.max(b.max);
+        }
+        CapsuleGroup {
+            ax: lane(&|k| k.a.x),
+            ay: lane(&|k| k.a.y),
+            az: lane(&|k| k.a.z),
+            bx: lane(&|k| k.b.x),
+            by: lane(&|k| k.b.y),
+            bz: lane(&|k| k.b.z),
+            bax: lane(&|k| k.ba.x),
+            bay: lane(&|k| k.ba.y),
+            baz: lane(&|k| k.ba.z),
+            baba: lane(&|k| k.baba),
+            flat: lane(&|k| 1e-9 * k.baba),
+            rr_baba: lane(&|k| k.rr_baba),
+            rr: lane(&|k| k.r * k.r),
+            idx,
+            yarn: c[0].yarn,
+            lo,
+            hi,
+        }
+    }
+
+    /// `Capsule::intersect` of the four lanes: entry distances, `INFINITY` where missed or where
+    /// the origin is inside.
+    #[inline]
+    fn intersect(&self, o: Vec3A, d: Vec3A) -> Vec4 {
+        let inf = Vec4::splat(f32::INFINITY);
+        let zero = Vec4::ZERO;
+        let (dx, dy, dz) = (Vec4::splat(d.x), Vec4::splat(d.y), Vec4::splat(d.z));
+        let (ox, oy, oz) = (Vec4::splat(o.x), Vec4::splat(o.y), Vec4::splat(o.z));
+        // Dot products summed as glam's `Vec3A::dot`: (x·x' + y·y') + z·z'.
+        let dot = |x0: Vec4, y0: Vec4, z0: Vec4, x1: Vec4, y1: Vec4, z1: Vec4| x0 * x1 + y0 * y1 + z0 * z1;
+        let (oax, oay, oaz) = (ox - self.ax, oy - self.ay, oz - self.az);
+        let bard = dot(self.bax, self.bay, self.baz, dx, dy, dz);
+        let baoa = dot(self.bax, self.bay, self.baz, oax, oay, oaz);
+        let rdoa = dot(dx, dy, dz, oax, oay, oaz);
+        let oaoa = dot(oax, oay, oaz, oax, oay, oaz);
+        let baba = self.baba;
+        let qa = baba - bard * bard;
+        let qb = baba * rdoa - baoa * bard;
+        let qc = baba * oaoa - baoa * baoa - self.rr_baba;
+        let h = qb * qb - qa * qc;
+        let t = (-qb - h.sqrt()) / qa;
+        let y = baoa + t * bard;
+        let body = y.cmpgt(zero) & y.cmplt(baba);
+        let t_body = Vec4::select(t.cmpgt(zero), t, inf);
+        let sphere = |cx: Vec4, cy: Vec4, cz: Vec4| {
+            let (ocx, ocy, ocz) = (ox - cx, oy - cy, oz - cz);
+            let b = dot(dx, dy, dz, ocx, ocy, ocz);
+            let h = b * b - (dot(ocx, ocy, ocz, ocx, ocy, ocz) - self.rr);
+            let t = -b - h.sqrt();
+            // `h < 0` misses; `t > 0` is false for the NaN of a negative `h` as well.
+            Vec4::select(h.cmplt(zero) | !t.cmpgt(zero), inf, t)
+        };
+        let ends = sphere(self.ax, self.ay, self.az).min(sphere(self.bx, self.by, self.bz));
+        let cyl = qa.cmpgt(self.flat);
+        // Cylinder wall (when the segment is not a point for the ray): a miss of the infinite
+        // cylinder misses the capsule; a wall hit between the end planes is the entry; otherwise
+        // the nearer end sphere.
+        Vec4::select(cyl & h.cmplt(zero), inf, Vec4::select(cyl & body, t_body, ends))
     }
 }
 
@@ -136,7 +258,10 @@ pub struct TileGeometry {
     pub set: YarnSet,
     /// The flyaway fibres (empty when the layer is off), unwrapped (see [`TileGeometry::with_hair`]).
     pub hairs: Vec<HairFibre>,
+    /// The capsules in build order: each chain's capsules consecutive.
     caps: Vec<Capsule>,
+    /// The chains in groups of [`LANES`] consecutive capsules, in the BVH's primitive order.
+    groups: Vec<CapsuleGroup>,
     bvh: CwBvh,
     z_lo: f32,
     z_hi: f32,
@@ -157,7 +282,10 @@ impl TileGeometry {
     pub fn with_hair(set: YarnSet, hair: &Hair) -> Self {
         let hairs = super::hair::generate(&set, hair);
         let mut caps = Vec::new();
+        // Each chain's capsule range `[start, end)` in `caps`, for the SIMD groups.
+        let mut chains = Vec::new();
         for (yi, y) in set.yarns.iter().enumerate() {
+            let start = caps.len();
             let n = (y.period() / PITCH).round() as i64 * SEGMENTS_PER_CELL as i64;
             let ds = y.period() / n as f32;
             let margin = SEGMENTS_PER_CELL as i64;
@@ -165,6 +293,7 @@ impl TileGeometry {
                 let (s0, s1) = (k as f32 * ds, (k + 1) as f32 * ds);
                 caps.push(Capsule::new(y.point(s0).into(), y.point(s1).into(), y.radius, yi as u32));
             }
+            chains.push((start, caps.len()));
         }
         let z = set.z_max() + 0.05;
         let (mut z_lo, mut z_hi) = (-z, z);
@@ -181,18 +310,28 @@ impl TileGeometry {
             for kx in shifts(lo.x, hi.x, tx) {
                 for ky in shifts(lo.y, hi.y, ty) {
                     let off = Vec3A::new(kx as f32 * tx, ky as f32 * ty, 0.0);
+                    let start = caps.len();
                     for w in f.points.windows(2) {
                         let (a, b) = (Vec3A::from(w[0]) + off, Vec3A::from(w[1]) + off);
                         caps.push(Capsule::new(a, b, r, (n_yarns + h) as u32));
                     }
+                    if caps.len() > start {
+                        chains.push((start, caps.len()));
+                    }
                 }
             }
         }
+        let mut groups = Vec::new();
+        for (start, end) in chains {
+            for first in (start..end).step_by(LANES) {
+                groups.push(CapsuleGroup::new(&caps, first, (end - first).min(LANES)));
+            }
+        }
         let mut t = std::time::Duration::default();
-        let bvh = obvhs::cwbvh::builder::build_cwbvh(&caps, BvhBuildParams::fast_build(), &mut t);
-        // Reorder once so BVH primitive ids index `caps` directly.
-        let caps: Vec<Capsule> = bvh.primitive_indices.iter().map(|&i| caps[i as usize]).collect();
-        TileGeometry { set, hairs, caps, bvh, z_lo, z_hi }
+        let bvh = obvhs::cwbvh::builder::build_cwbvh(&groups, BvhBuildParams::fast_build(), &mut t);
+        // Reorder once so BVH primitive ids index `groups` directly.
+        let groups: Vec<CapsuleGroup> = bvh.primitive_indices.iter().map(|&i| groups[i as usize]).collect();
+        TileGeometry { set, hairs, caps, groups, bvh, z_lo, z_hi }
     }
 
     /// The hair-layer frame of a hit on capsule `c` at stretched-space point `p`, in the world.
@@ -280,18 +419,22 @@ impl TileGeometry {
             let t_cell = exit(o.x, d.x, tx).min(exit(o.y, d.y, ty)).max(0.0);
             let t_end = t_cell.min(t_slab);
             let ray = Ray::new(o.into(), d_bvh, 0.0, t_end + 1e-4);
+            // Closest entry and its capsule's index in `caps`.
             let mut best = (f32::INFINITY, 0usize);
             let oa: Vec3A = o.into();
             self.bvh.ray_traverse(ray, &mut obvhs::ray::RayHit::none(), |r, id| {
-                let c = &self.caps[id];
-                let t = c.intersect(oa, da);
+                let g = &self.groups[id];
+                let mut ts = g.intersect(oa, da);
                 if let Some((sy, st)) = skip {
-                    if c.yarn as usize == sy && travelled + t < st {
-                        return f32::INFINITY;
+                    if g.yarn as usize == sy {
+                        ts = Vec4::select((Vec4::splat(travelled) + ts).cmplt(Vec4::splat(st)), Vec4::INFINITY, ts);
                     }
                 }
+                let t = ts.min_element();
                 if t < r.tmax && t < best.0 {
-                    best = (t, id);
+                    // The first lane at the minimum (lanes are in chain order).
+                    let lane = ts.to_array().iter().position(|&x| x == t).unwrap_or(0);
+                    best = (t, g.idx[lane] as usize);
                 }
                 t
             });
@@ -417,6 +560,45 @@ pub(crate) mod tests {
     /// The tile of preset `name` with both families' radius `r` (also the renderer's tests' tile).
     pub(crate) fn tile(name: &str, r: f32) -> TileGeometry {
         TileGeometry::new(YarnSet::new(&WeavePattern::preset(name).unwrap(), r, r))
+    }
+
+    #[test]
+    fn a_capsule_group_answers_each_lanes_scalar_test_to_the_bit() {
+        // Rays from all over and inside the slab, in every direction, against every group of a
+        // twill with hair: each lane's distance has the scalar test's bits, padded lanes repeat
+        // their capsule, and the sample exercises wall hits, end-sphere hits, misses and origins
+        // inside a capsule.
+        use rand::{RngExt, SeedableRng};
+        let set = YarnSet::new(&WeavePattern::preset("twill22").unwrap(), 4.2, 3.6);
+        let g = TileGeometry::with_hair(set, &Hair { density: 2.0, length: 6.0, radius: 0.12 });
+        assert!(g.groups.len() * LANES >= g.caps.len() && g.groups.len() < g.caps.len());
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let (mut finite, mut inside, mut degenerate) = (0, 0, 0);
+        for k in 0..4000 {
+            let o = Vec3A::new(rng.random_range(-5.0..45.0), rng.random_range(-5.0..45.0), rng.random_range(-8.0..8.0));
+            let mut d =
+                Vec3A::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+            if k % 50 == 0 {
+                d = Vec3A::new(0.0, 0.0, -1.0);
+            } else if k % 50 == 1 {
+                // Along a capsule's axis: the segment is a point for that capsule (end spheres).
+                d = g.caps[k % g.caps.len()].ba;
+            }
+            let d = d.normalize_or(Vec3A::Z);
+            for grp in &g.groups {
+                let ts = grp.intersect(o, d).to_array();
+                for (lane, &i) in grp.idx.iter().enumerate() {
+                    let c = &g.caps[i as usize];
+                    let want = c.intersect(o, d);
+                    assert_eq!(ts[lane].to_bits(), want.to_bits(), "ray {k} capsule {i}: {} vs {want}", ts[lane]);
+                    assert_eq!(grp.yarn, c.yarn);
+                    finite += want.is_finite() as usize;
+                    inside += ((o - c.a).length() < c.r) as usize;
+                    degenerate += (c.baba - c.ba.dot(d) * c.ba.dot(d) <= 1e-9 * c.baba) as usize;
+                }
+            }
+        }
+        assert!(finite > 10_000 && inside > 100 && degenerate > 20, "{finite} {inside} {degenerate}");
     }
 
     #[test]

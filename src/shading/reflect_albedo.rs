@@ -10,14 +10,20 @@
 //! `E_R + T·E_T + (1 − max(F, E_R))·(1 − T)·body ≤ 1` because a single-scattering microfacet
 //! lobe never reflects and transmits more than it receives (`E_R + E_T ≤ 1`).
 //!
-//! `E_R` has no closed form, so it is tabulated once (lazily, ≈0.1 s) on a grid over `c_v`,
-//! `√α` and `ln η` by stratified visible-normal sampling (Heitz 2018), where the estimator of the
-//! lobe is `F(v·h)·G1(l)`, and read back by trilinear interpolation. The interpolant's own
+//! `E_R` has no closed form, so it is tabulated on a grid over `c_v`, `√α` and `ln η` by
+//! stratified visible-normal sampling (Heitz 2018), where the estimator of the lobe is
+//! `F(v·h)·G1(l)`, and read back by trilinear interpolation. The table ships in the binary
+//! (`reflect_albedo_table.bin`, little-endian `f32`): computing it took 0.27 CPU s at every
+//! start of the program, 5 % of a 256² render (docs/benchmarks.md, session 15); a test recomputes
+//! it and checks the shipped copy. The interpolant's own
 //! partial derivatives carry the gradient in `α` and `η`, so derivatives agree with finite
 //! differences of what is evaluated.
 
-use super::ggx::{clamp_alpha, fresnel, sample_vndf, smith_g1, ALPHA_MIN};
+use super::ggx::{clamp_alpha, ALPHA_MIN};
+#[cfg(test)]
+use super::ggx::{fresnel, sample_vndf, smith_g1};
 use super::real::Real;
+#[cfg(test)]
 use glam::Vec3;
 use std::sync::OnceLock;
 
@@ -28,6 +34,7 @@ const N_ETA: usize = 25;
 /// [1.4, 1.6] with margin; beyond it the value at the edge is used.
 const LN_ETA: (f32, f32) = (-0.916_290_7, 0.916_290_7);
 /// Stratified samples per axis for each table entry.
+#[cfg(test)]
 const STRATA: usize = 16;
 
 /// Grid coordinates: `c_v` linear in [0, 1], `√α` linear in [√α_min, 1], `ln η` linear.
@@ -41,6 +48,7 @@ fn axes(cv: f32, sqrt_alpha: f32, ln_eta: f32) -> [f32; 3] {
 }
 
 /// `E_R` by stratified visible-normal sampling, for the table.
+#[cfg(test)]
 fn integrate(cv: f32, alpha: f32, eta: f32) -> f32 {
     let cv = cv.max(1e-4);
     let v = Vec3::new((1.0 - cv * cv).max(0.0).sqrt(), 0.0, cv);
@@ -64,9 +72,23 @@ fn integrate(cv: f32, alpha: f32, eta: f32) -> f32 {
     (sum / (STRATA * STRATA) as f64) as f32
 }
 
+/// The shipped table's bytes (`compute_table`'s values, little-endian `f32`).
+static SHIPPED: &[u8] = include_bytes!("reflect_albedo_table.bin");
+
+/// The table, decoded once from the shipped bytes.
 fn table() -> &'static [f32] {
     static TABLE: OnceLock<Vec<f32>> = OnceLock::new();
     TABLE.get_or_init(|| {
+        let t: Vec<f32> = SHIPPED.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        assert_eq!(t.len(), N_CV * N_ALPHA * N_ETA, "reflect_albedo_table.bin does not match the table's grid");
+        t
+    })
+}
+
+/// `E_R` on the whole grid, `c_v` slowest and `ln η` fastest (the shipped table's order).
+#[cfg(test)]
+fn compute_table() -> Vec<f32> {
+    {
         let s0 = ALPHA_MIN.sqrt();
         let mut t = Vec::with_capacity(N_CV * N_ALPHA * N_ETA);
         for i in 0..N_CV {
@@ -80,7 +102,7 @@ fn table() -> &'static [f32] {
             }
         }
         t
-    })
+    }
 }
 
 /// The tabulated `E_R` and its partials in the grid coordinates, by trilinear interpolation.
@@ -140,6 +162,26 @@ pub fn reflect_albedo<T: Real>(cv: f32, alpha: T, eta: T) -> T {
 mod tests {
     use super::*;
     use crate::shading::real::Dual;
+
+    #[test]
+    fn the_shipped_table_is_the_computed_one() {
+        // Recompute the grid (Heitz 2018 sampling, as at build time) and compare with the bytes
+        // in the binary. `WOVEN_WRITE_ALBEDO_TABLE=1` rewrites the file after a change of the grid
+        // or of the lobe.
+        let want = compute_table();
+        if std::env::var_os("WOVEN_WRITE_ALBEDO_TABLE").is_some() {
+            let bytes: Vec<u8> = want.iter().flat_map(|v| v.to_le_bytes()).collect();
+            std::fs::write(concat!(env!("CARGO_MANIFEST_DIR"), "/src/shading/reflect_albedo_table.bin"), bytes)
+                .unwrap();
+        }
+        let got = table();
+        assert_eq!(got.len(), want.len());
+        let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let differ = got.iter().zip(&want).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+        // Bit-equal where built; the tolerance allows another platform's last-ulp `sin`/`cos`.
+        assert!(worst <= 1e-6, "shipped table off by {worst} ({differ} entries differ)");
+        assert!(want.iter().any(|&v| v > 0.5) && want.iter().all(|&v| (0.0..=1.0).contains(&v)));
+    }
 
     #[test]
     fn smooth_limit_is_fresnel() {
