@@ -11,8 +11,27 @@ use crate::render::PathCache;
 /// Loss of a candidate during pre-estimation: trace it, give it its own colour estimate (written
 /// into `cand`), re-shade.
 pub(crate) fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f32 {
+    pattern_loss_read(ev, cand, c, Reading::YarnPixels)
+}
+
+/// Which pixels of a family's cells its mean colour is read over (see [`fit_colours`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Reading {
+    /// The pixels a yarn covers in both the model and the target ([`yarn_pixels`]).
+    YarnPixels,
+    /// Every pixel of the family's cells (inner margin aside).
+    EveryPixel,
+}
+
+/// [`pattern_loss`] with the family colours read over the pixels `reading` names.
+pub(crate) fn pattern_loss_read(ev: &Evaluator, cand: &mut ClothParams, c: u32, reading: Reading) -> f32 {
     let cache = ev.record(cand);
-    fit_colours(ev, cand, &cache, c);
+    let keep = match reading {
+        Reading::YarnPixels => yarn_pixels(ev, &cache, &cand.pattern, c),
+        Reading::EveryPixel => vec![true; ev.target().data.len()],
+    };
+    let shades = body_shades(ev, cand, &cache);
+    fit_colours_with(ev, cand, &shades, c, &keep);
     ev.loss_of(&cache, &cand.appearance)
 }
 
@@ -90,19 +109,43 @@ fn median_colour(img: &Image, idx: impl Iterator<Item = usize>) -> [f32; 3] {
 }
 
 /// Body colours: per channel a two-point affine fit of the rendered family means of each yarn
-/// family against `R^B` (`S^B` set equal), inverted at the target's family means; every mean
-/// over the same pixels, those a yarn covers in both ([`yarn_pixels`]).
-fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32) {
+/// family against `R^B` (`S^B` set equal), inverted at the target's family means. Two readings of
+/// the family means ([`Reading`]), each over the same pixels in the target and the re-shadings:
+/// the pixels a yarn covers in both ([`yarn_pixels`]), and every pixel of the family's cells. The
+/// one whose colours give the lower loss is kept, and that loss returned.
+///
+/// Why both: the yarn-pixel reading keeps a target's holes, where they are larger than the
+/// model's at its current radii, from washing the families out (session 11). But it classes a
+/// pixel by its colour alone (nearer the picture's hole colour than its family's median), and a
+/// translucent yarn lit from behind glows near its edges in a colour close to the back light's:
+/// those pixels are yarn too, and leaving them out darkens the families. Each reading is a start
+/// of the same least-squares problem that the descent after this estimate solves; the loss it is
+/// for decides which start the descent continues from.
+fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32) -> f32 {
     let keep = yarn_pixels(ev, cache, &cloth.pattern, c);
-    fit_colours_on(ev, cloth, cache, c, &keep);
+    let shades = body_shades(ev, cloth, cache);
+    let every = vec![true; keep.len()];
+    let start = cloth.clone();
+    fit_colours_with(ev, cloth, &shades, c, &keep);
+    let mut best = ev.loss_of(cache, &cloth.appearance);
+    if keep.iter().any(|&k| !k) {
+        let mut cand = start;
+        fit_colours_with(ev, &mut cand, &shades, c, &every);
+        let l = ev.loss_of(cache, &cand.appearance);
+        // A NaN loss never replaces a finite one (`<` is false): the yarn-pixel reading stands.
+        if l < best {
+            (best, *cloth) = (l, cand);
+        }
+    }
+    best
 }
 
-/// [`fit_colours`] with the family means over the pixels `keep` (row-major, one per pixel).
-fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32, keep: &[bool]) {
-    let p = cloth.pattern.clone();
-    let t = ev.target();
-    let mean = |img: &Image, side: bool| target::yarn_mean_where(img, &p, c, side, CELL_MARGIN, keep);
-    let (me, ma) = (mean(t, true), mean(t, false));
+/// Low and high body albedo of the two re-shadings [`fit_colours_with`] interpolates between.
+const BODY_PROBES: (f32, f32) = (0.3, 0.9);
+
+/// The recorded paths shaded (and observed as the target is) with every body colour at the low
+/// and at the high probe of [`BODY_PROBES`], the rest of `cloth`'s appearance as it is.
+fn body_shades(ev: &Evaluator, cloth: &ClothParams, cache: &PathCache) -> (Image, Image) {
     let with_body = |v: f32| {
         let mut a = cloth.appearance.clone();
         a.r_b_e = [v; 3];
@@ -111,8 +154,28 @@ fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c:
         a.s_b_a = [v; 3];
         a
     };
-    let (lo, hi) = (0.3f32, 0.9f32);
-    let (i0, i1) = (ev.observe(&cache.shade(&with_body(lo))), ev.observe(&cache.shade(&with_body(hi))));
+    let (lo, hi) = BODY_PROBES;
+    (ev.observe(&cache.shade(&with_body(lo))), ev.observe(&cache.shade(&with_body(hi))))
+}
+
+/// The body colours with the family means over the pixels `keep` (row-major, one per pixel)
+/// only, re-shading the recorded paths.
+#[cfg(test)]
+fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32, keep: &[bool]) {
+    let shades = body_shades(ev, cloth, cache);
+    fit_colours_with(ev, cloth, &shades, c, keep);
+}
+
+/// The body colours from the two probe shadings `shades` ([`body_shades`]) with the family means
+/// over the pixels `keep`: per channel the affine fit through the two probes, inverted at the
+/// target's family mean, clamped to [0.01, 1].
+fn fit_colours_with(ev: &Evaluator, cloth: &mut ClothParams, shades: &(Image, Image), c: u32, keep: &[bool]) {
+    let p = cloth.pattern.clone();
+    let t = ev.target();
+    let mean = |img: &Image, side: bool| target::yarn_mean_where(img, &p, c, side, CELL_MARGIN, keep);
+    let (me, ma) = (mean(t, true), mean(t, false));
+    let (lo, hi) = BODY_PROBES;
+    let (i0, i1) = shades;
     let solve = |m: [f32; 3], r0: [f32; 3], r1: [f32; 3]| {
         let mut out = [0.5f32; 3];
         for k in 0..3 {
@@ -122,11 +185,11 @@ fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c:
         }
         out
     };
-    if let (Some(m), Some(r0), Some(r1)) = (me, mean(&i0, true), mean(&i1, true)) {
+    if let (Some(m), Some(r0), Some(r1)) = (me, mean(i0, true), mean(i1, true)) {
         cloth.appearance.r_b_e = solve(m, r0, r1);
         cloth.appearance.s_b_e = cloth.appearance.r_b_e;
     }
-    if let (Some(m), Some(r0), Some(r1)) = (ma, mean(&i0, false), mean(&i1, false)) {
+    if let (Some(m), Some(r0), Some(r1)) = (ma, mean(i0, false), mean(i1, false)) {
         cloth.appearance.r_b_a = solve(m, r0, r1);
         cloth.appearance.s_b_a = cloth.appearance.r_b_a;
     }
@@ -229,5 +292,17 @@ mod tests {
         let (with_gaps, yarn_only) = (err(&vec![true; all]), err(&keep));
         assert!(with_gaps > 0.25, "every pixel: worst channel {with_gaps} off");
         assert!(yarn_only < with_gaps / 3.0 && yarn_only < 0.1, "yarn pixels: {yarn_only} (every pixel {with_gaps})");
+        // The estimate keeps whichever reading's colours cost less, and returns that loss.
+        let loss_of = |keep: &[bool]| {
+            let mut cl = model.clone();
+            fit_colours_on(&ev, &mut cl, &cache, c, keep);
+            ev.loss_of(&cache, &cl.appearance)
+        };
+        let (l_yarn, l_every) = (loss_of(&keep), loss_of(&vec![true; all]));
+        let mut cl = model.clone();
+        let l = fit_colours(&ev, &mut cl, &cache, c);
+        assert!(l_yarn != l_every, "the readings differ here");
+        assert_eq!(l, l_yarn.min(l_every));
+        assert_eq!(l, ev.loss_of(&cache, &cl.appearance));
     }
 }
