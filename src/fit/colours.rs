@@ -14,7 +14,12 @@ pub(crate) fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f3
     pattern_loss_read(ev, cand, c, Reading::YarnPixels)
 }
 
-/// Which pixels of a family's cells its mean colour is read over (see [`fit_colours`]).
+/// Which pixels of a family's cells its mean colour is read over (see [`fit_colours`]). The
+/// yarn-pixel reading keeps a target's holes, where they are larger than the model's at its
+/// current radii, from washing the families out (session 11); but it classes a pixel by its
+/// colour alone, and a translucent yarn lit from behind glows near its edges in a colour close to
+/// the back light's: those pixels are yarn too, and leaving them out darkens the families
+/// (session 15, see `preestimate::shape_variants`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum Reading {
     /// The pixels a yarn covers in both the model and the target ([`yarn_pixels`]).
@@ -26,13 +31,7 @@ pub(crate) enum Reading {
 /// [`pattern_loss`] with the family colours read over the pixels `reading` names.
 pub(crate) fn pattern_loss_read(ev: &Evaluator, cand: &mut ClothParams, c: u32, reading: Reading) -> f32 {
     let cache = ev.record(cand);
-    let keep = match reading {
-        Reading::YarnPixels => yarn_pixels(ev, &cache, &cand.pattern, c),
-        Reading::EveryPixel => vec![true; ev.target().data.len()],
-    };
-    let shades = body_shades(ev, cand, &cache);
-    fit_colours_with(ev, cand, &shades, c, &keep);
-    ev.loss_of(&cache, &cand.appearance)
+    fit_colours(ev, cand, &cache, c, reading)
 }
 
 /// Most share of a pixel's samples (after the target's blur) that may miss the model's cloth for
@@ -109,35 +108,17 @@ fn median_colour(img: &Image, idx: impl Iterator<Item = usize>) -> [f32; 3] {
 }
 
 /// Body colours: per channel a two-point affine fit of the rendered family means of each yarn
-/// family against `R^B` (`S^B` set equal), inverted at the target's family means. Two readings of
-/// the family means ([`Reading`]), each over the same pixels in the target and the re-shadings:
-/// the pixels a yarn covers in both ([`yarn_pixels`]), and every pixel of the family's cells. The
-/// one whose colours give the lower loss is kept, and that loss returned.
-///
-/// Why both: the yarn-pixel reading keeps a target's holes, where they are larger than the
-/// model's at its current radii, from washing the families out (session 11). But it classes a
-/// pixel by its colour alone (nearer the picture's hole colour than its family's median), and a
-/// translucent yarn lit from behind glows near its edges in a colour close to the back light's:
-/// those pixels are yarn too, and leaving them out darkens the families. Each reading is a start
-/// of the same least-squares problem that the descent after this estimate solves; the loss it is
-/// for decides which start the descent continues from.
-fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32) -> f32 {
-    let keep = yarn_pixels(ev, cache, &cloth.pattern, c);
+/// family against `R^B` (`S^B` set equal), inverted at the target's family means; every mean over
+/// the same pixels of the target and the re-shadings, those `reading` names ([`Reading`]).
+/// Returns the loss of the estimate.
+fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32, reading: Reading) -> f32 {
+    let keep = match reading {
+        Reading::YarnPixels => yarn_pixels(ev, cache, &cloth.pattern, c),
+        Reading::EveryPixel => vec![true; ev.target().data.len()],
+    };
     let shades = body_shades(ev, cloth, cache);
-    let every = vec![true; keep.len()];
-    let start = cloth.clone();
     fit_colours_with(ev, cloth, &shades, c, &keep);
-    let mut best = ev.loss_of(cache, &cloth.appearance);
-    if keep.iter().any(|&k| !k) {
-        let mut cand = start;
-        fit_colours_with(ev, &mut cand, &shades, c, &every);
-        let l = ev.loss_of(cache, &cand.appearance);
-        // A NaN loss never replaces a finite one (`<` is false): the yarn-pixel reading stands.
-        if l < best {
-            (best, *cloth) = (l, cand);
-        }
-    }
-    best
+    ev.loss_of(cache, &cloth.appearance)
 }
 
 /// Low and high body albedo of the two re-shadings [`fit_colours_with`] interpolates between.
@@ -195,12 +176,12 @@ fn fit_colours_with(ev: &Evaluator, cloth: &mut ClothParams, shades: &(Image, Im
     }
 }
 
-/// Full colour pre-estimation: body colours, then the specular colour from the top-10% pixels
+/// Full colour pre-estimation (family means read as `reading` says): body colours, then the specular colour from the top-10% pixels
 /// (converted the same way), then the body colours again with that specular colour.
 /// Returns the recorded paths of `cloth` (its geometry is unchanged), for a descent that follows.
-pub(crate) fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) -> PathCache {
+pub(crate) fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32, reading: Reading) -> PathCache {
     let cache = ev.record(cloth);
-    fit_colours(ev, cloth, &cache, c);
+    fit_colours(ev, cloth, &cache, c, reading);
     let (lo, hi) = (0.2f32, 0.8f32);
     let with_spec = |v: f32| {
         let mut a = cloth.appearance.clone();
@@ -216,7 +197,7 @@ pub(crate) fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) 
         let v = if slope.abs() > 1e-6 { lo + (m[k] - s0[k]) / slope } else { 0.5 };
         cloth.appearance.r_s[k] = v.clamp(0.0, 1.0);
     }
-    fit_colours(ev, cloth, &cache, c);
+    fit_colours(ev, cloth, &cache, c, reading);
     cache
 }
 
@@ -239,7 +220,7 @@ mod tests {
         }
         cloth.appearance.s_b_a = [0.5; 3];
         let grey = ev.trace_mse(&cloth);
-        estimate_colours(&ev, &mut cloth, c);
+        estimate_colours(&ev, &mut cloth, c, Reading::YarnPixels);
         let (e, a) = (cloth.appearance.r_b_e, cloth.appearance.r_b_a);
         // Blue weft and ochre warp come back in the right order and near their values.
         assert!(e[2] > e[0] + 0.3 && a[0] > a[2] + 0.3, "weft {e:?} warp {a:?}");
@@ -292,17 +273,5 @@ mod tests {
         let (with_gaps, yarn_only) = (err(&vec![true; all]), err(&keep));
         assert!(with_gaps > 0.25, "every pixel: worst channel {with_gaps} off");
         assert!(yarn_only < with_gaps / 3.0 && yarn_only < 0.1, "yarn pixels: {yarn_only} (every pixel {with_gaps})");
-        // The estimate keeps whichever reading's colours cost less, and returns that loss.
-        let loss_of = |keep: &[bool]| {
-            let mut cl = model.clone();
-            fit_colours_on(&ev, &mut cl, &cache, c, keep);
-            ev.loss_of(&cache, &cl.appearance)
-        };
-        let (l_yarn, l_every) = (loss_of(&keep), loss_of(&vec![true; all]));
-        let mut cl = model.clone();
-        let l = fit_colours(&ev, &mut cl, &cache, c);
-        assert!(l_yarn != l_every, "the readings differ here");
-        assert_eq!(l, l_yarn.min(l_every));
-        assert_eq!(l, ev.loss_of(&cache, &cl.appearance));
     }
 }

@@ -323,9 +323,9 @@ fn warm_up(
     cand.pattern = p;
     let mut best_radii: Option<(f32, ClothParams)> = None;
     // The shape variants the scans find with each reading of the family colours (see
-    // `shape_variants`).
-    for mut v in shape_variants(pre_ev, &cand, cp, stop) {
-        let cache = estimate_colours(ev, &mut v, c);
+    // `shape_variants`), each with its reading's colour estimate.
+    for (mut v, reading) in shape_variants(pre_ev, &cand, cp, stop) {
+        let cache = estimate_colours(ev, &mut v, c, reading);
         let l = refine::lm_appearance(ev, &cache, &mut v, iters, stop);
         if best_radii.as_ref().is_none_or(|b| l < b.0) {
             best_radii = Some((l, v));
@@ -352,7 +352,9 @@ fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec
 }
 
 /// The shape variants of [`scan_shape`] with the family colours read over the yarn pixels, then
-/// those it finds with every pixel of the cells read, duplicates removed.
+/// those it finds with every pixel of the cells read, duplicates removed; each with the reading
+/// that found it, whose colour estimate starts its descent (a yarn-pixel variant starts where it
+/// did before session 15).
 ///
 /// The scans are a coordinate search (common radius, then plies, then each family's radius) on
 /// a loss whose colours are estimated anew at every shape, and which reading of the colours the
@@ -364,11 +366,12 @@ fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec
 /// 5 plies at 4.2/4.9 to the descent (session 14's one-repeat target 2: 23 dB for 38 dB before
 /// that rule). The scans' loss does not rank the variants reliably anyway (see [`scan_shape`]);
 /// the descent of each does. So both readings' variants are offered to it, and it keeps the best.
-fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<ClothParams> {
-    let mut out = scan_shape(ev, cloth, c, Reading::YarnPixels, stop);
+fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
+    let mut out: Vec<(ClothParams, Reading)> =
+        scan_shape(ev, cloth, c, Reading::YarnPixels, stop).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
     for v in scan_shape(ev, cloth, c, Reading::EveryPixel, stop) {
-        if !out.iter().any(|u| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
-            out.push(v);
+        if !out.iter().any(|(u, _)| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
+            out.push((v, Reading::EveryPixel));
         }
     }
     out
@@ -637,7 +640,7 @@ mod tests {
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
         let yarn = scan_shape(&ev, &start, c, Reading::YarnPixels, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
-        let all = shape_variants(&ev, &start, c, &stop);
+        let all: Vec<ClothParams> = shape_variants(&ev, &start, c, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
