@@ -11,9 +11,27 @@ use crate::render::PathCache;
 /// Loss of a candidate during pre-estimation: trace it, give it its own colour estimate (written
 /// into `cand`), re-shade.
 pub(crate) fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f32 {
+    pattern_loss_read(ev, cand, c, Reading::YarnPixels)
+}
+
+/// Which pixels of a family's cells its mean colour is read over (see [`fit_colours`]). The
+/// yarn-pixel reading keeps a target's holes, where they are larger than the model's at its
+/// current radii, from washing the families out (session 11); but it classes a pixel by its
+/// colour alone, and a translucent yarn lit from behind glows near its edges in a colour close to
+/// the back light's: those pixels are yarn too, and leaving them out darkens the families
+/// (session 15, see `preestimate::shape_variants`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Reading {
+    /// The pixels a yarn covers in both the model and the target ([`yarn_pixels`]).
+    YarnPixels,
+    /// Every pixel of the family's cells (inner margin aside).
+    EveryPixel,
+}
+
+/// [`pattern_loss`] with the family colours read over the pixels `reading` names.
+pub(crate) fn pattern_loss_read(ev: &Evaluator, cand: &mut ClothParams, c: u32, reading: Reading) -> f32 {
     let cache = ev.record(cand);
-    fit_colours(ev, cand, &cache, c);
-    ev.loss_of(&cache, &cand.appearance)
+    fit_colours(ev, cand, &cache, c, reading)
 }
 
 /// Most share of a pixel's samples (after the target's blur) that may miss the model's cloth for
@@ -90,19 +108,25 @@ fn median_colour(img: &Image, idx: impl Iterator<Item = usize>) -> [f32; 3] {
 }
 
 /// Body colours: per channel a two-point affine fit of the rendered family means of each yarn
-/// family against `R^B` (`S^B` set equal), inverted at the target's family means; every mean
-/// over the same pixels, those a yarn covers in both ([`yarn_pixels`]).
-fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32) {
-    let keep = yarn_pixels(ev, cache, &cloth.pattern, c);
-    fit_colours_on(ev, cloth, cache, c, &keep);
+/// family against `R^B` (`S^B` set equal), inverted at the target's family means; every mean over
+/// the same pixels of the target and the re-shadings, those `reading` names ([`Reading`]).
+/// Returns the loss of the estimate.
+fn fit_colours(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32, reading: Reading) -> f32 {
+    let keep = match reading {
+        Reading::YarnPixels => yarn_pixels(ev, cache, &cloth.pattern, c),
+        Reading::EveryPixel => vec![true; ev.target().data.len()],
+    };
+    let shades = body_shades(ev, cloth, cache);
+    fit_colours_with(ev, cloth, &shades, c, &keep);
+    ev.loss_of(cache, &cloth.appearance)
 }
 
-/// [`fit_colours`] with the family means over the pixels `keep` (row-major, one per pixel).
-fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32, keep: &[bool]) {
-    let p = cloth.pattern.clone();
-    let t = ev.target();
-    let mean = |img: &Image, side: bool| target::yarn_mean_where(img, &p, c, side, CELL_MARGIN, keep);
-    let (me, ma) = (mean(t, true), mean(t, false));
+/// Low and high body albedo of the two re-shadings [`fit_colours_with`] interpolates between.
+const BODY_PROBES: (f32, f32) = (0.3, 0.9);
+
+/// The recorded paths shaded (and observed as the target is) with every body colour at the low
+/// and at the high probe of [`BODY_PROBES`], the rest of `cloth`'s appearance as it is.
+fn body_shades(ev: &Evaluator, cloth: &ClothParams, cache: &PathCache) -> (Image, Image) {
     let with_body = |v: f32| {
         let mut a = cloth.appearance.clone();
         a.r_b_e = [v; 3];
@@ -111,8 +135,28 @@ fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c:
         a.s_b_a = [v; 3];
         a
     };
-    let (lo, hi) = (0.3f32, 0.9f32);
-    let (i0, i1) = (ev.observe(&cache.shade(&with_body(lo))), ev.observe(&cache.shade(&with_body(hi))));
+    let (lo, hi) = BODY_PROBES;
+    (ev.observe(&cache.shade(&with_body(lo))), ev.observe(&cache.shade(&with_body(hi))))
+}
+
+/// The body colours with the family means over the pixels `keep` (row-major, one per pixel)
+/// only, re-shading the recorded paths.
+#[cfg(test)]
+fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c: u32, keep: &[bool]) {
+    let shades = body_shades(ev, cloth, cache);
+    fit_colours_with(ev, cloth, &shades, c, keep);
+}
+
+/// The body colours from the two probe shadings `shades` ([`body_shades`]) with the family means
+/// over the pixels `keep`: per channel the affine fit through the two probes, inverted at the
+/// target's family mean, clamped to [0.01, 1].
+fn fit_colours_with(ev: &Evaluator, cloth: &mut ClothParams, shades: &(Image, Image), c: u32, keep: &[bool]) {
+    let p = cloth.pattern.clone();
+    let t = ev.target();
+    let mean = |img: &Image, side: bool| target::yarn_mean_where(img, &p, c, side, CELL_MARGIN, keep);
+    let (me, ma) = (mean(t, true), mean(t, false));
+    let (lo, hi) = BODY_PROBES;
+    let (i0, i1) = shades;
     let solve = |m: [f32; 3], r0: [f32; 3], r1: [f32; 3]| {
         let mut out = [0.5f32; 3];
         for k in 0..3 {
@@ -122,22 +166,22 @@ fn fit_colours_on(ev: &Evaluator, cloth: &mut ClothParams, cache: &PathCache, c:
         }
         out
     };
-    if let (Some(m), Some(r0), Some(r1)) = (me, mean(&i0, true), mean(&i1, true)) {
+    if let (Some(m), Some(r0), Some(r1)) = (me, mean(i0, true), mean(i1, true)) {
         cloth.appearance.r_b_e = solve(m, r0, r1);
         cloth.appearance.s_b_e = cloth.appearance.r_b_e;
     }
-    if let (Some(m), Some(r0), Some(r1)) = (ma, mean(&i0, false), mean(&i1, false)) {
+    if let (Some(m), Some(r0), Some(r1)) = (ma, mean(i0, false), mean(i1, false)) {
         cloth.appearance.r_b_a = solve(m, r0, r1);
         cloth.appearance.s_b_a = cloth.appearance.r_b_a;
     }
 }
 
-/// Full colour pre-estimation: body colours, then the specular colour from the top-10% pixels
+/// Full colour pre-estimation (family means read as `reading` says): body colours, then the specular colour from the top-10% pixels
 /// (converted the same way), then the body colours again with that specular colour.
 /// Returns the recorded paths of `cloth` (its geometry is unchanged), for a descent that follows.
-pub(crate) fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) -> PathCache {
+pub(crate) fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32, reading: Reading) -> PathCache {
     let cache = ev.record(cloth);
-    fit_colours(ev, cloth, &cache, c);
+    fit_colours(ev, cloth, &cache, c, reading);
     let (lo, hi) = (0.2f32, 0.8f32);
     let with_spec = |v: f32| {
         let mut a = cloth.appearance.clone();
@@ -153,7 +197,7 @@ pub(crate) fn estimate_colours(ev: &Evaluator, cloth: &mut ClothParams, c: u32) 
         let v = if slope.abs() > 1e-6 { lo + (m[k] - s0[k]) / slope } else { 0.5 };
         cloth.appearance.r_s[k] = v.clamp(0.0, 1.0);
     }
-    fit_colours(ev, cloth, &cache, c);
+    fit_colours(ev, cloth, &cache, c, reading);
     cache
 }
 
@@ -176,7 +220,7 @@ mod tests {
         }
         cloth.appearance.s_b_a = [0.5; 3];
         let grey = ev.trace_mse(&cloth);
-        estimate_colours(&ev, &mut cloth, c);
+        estimate_colours(&ev, &mut cloth, c, Reading::YarnPixels);
         let (e, a) = (cloth.appearance.r_b_e, cloth.appearance.r_b_a);
         // Blue weft and ochre warp come back in the right order and near their values.
         assert!(e[2] > e[0] + 0.3 && a[0] > a[2] + 0.3, "weft {e:?} warp {a:?}");

@@ -259,6 +259,15 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         // Optional flyaway fibres, their density kept only where it pays (hair_extra.rs).
         hair_extra::fit_hair(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop);
         stages.mark("hair", &ev, Some(&cloth));
+    }
+    // A photo's exposure, set once before the fit, traded against body colours left at their
+    // bound (`refine::trade_exposure`); a one-repeat render keeps the model's unit exposure.
+    let traded = (!joint.stopped && target.prep.is_some() && opts.pre.enabled)
+        .then(|| refine::trade_exposure(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
+        .flatten();
+    let ev = traded.unwrap_or(ev);
+    if !joint.stopped {
+        stages.mark("exposure", &ev, Some(&cloth));
         if opts.finish.svcolor > 0 {
             cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
             stages.mark("texture", &ev, Some(&cloth));

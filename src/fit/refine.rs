@@ -116,6 +116,71 @@ pub(super) fn lm_appearance(
     out.loss as f32
 }
 
+/// Factor by which [`trade_exposure`] raises the exposure at each step.
+const EXPOSURE_STEP: f32 = 1.25;
+/// Most steps of [`trade_exposure`] (1.25⁴ ≈ 2.4 times the exposure it started from).
+const EXPOSURE_STEPS: usize = 4;
+/// A body colour channel at or above this sits at the top of its range (Table 1: [0, 1]).
+const AT_BOUND: f32 = 0.99;
+
+/// Whether a body colour (`R^B` or `S^B` of either family) sits at the top of its range in some
+/// channel.
+pub(super) fn body_colour_at_bound(a: &Appearance) -> bool {
+    [a.r_b_e, a.r_b_a, a.s_b_e, a.s_b_a].iter().any(|c| c.iter().any(|&v| v >= AT_BOUND))
+}
+
+/// The exposure and the colours traded while a body colour sits at its bound: the exposure
+/// raised by [`EXPOSURE_STEP`], every colour that scales the light the cloth sends back (`R^B`,
+/// `S^B`, `R^S`, `T^S`, `T^S_y`) divided by it, so that the render starts near the one before
+/// (exactly for light scattered once; the body's multiple scattering is not linear in its albedo),
+/// then `iters` Levenberg–Marquardt iterations of the appearance at the new exposure. A step is
+/// kept only when its loss (MSE + barrier) is below the state's after the same iterations at the
+/// exposure it had; up to [`EXPOSURE_STEPS`] steps, while a colour is still at its bound.
+/// Returns the evaluator at the kept exposure (its re-traces count on `ev`'s counter), or `None`
+/// when no step was kept; `cloth` holds the appearance that goes with the returned evaluator
+/// (or `ev`).
+///
+/// Why: a photo's exposure is set once, before the fit, from the target's brightest cell against
+/// the default cloth's (`preestimate::exposure_for`). Where the yarns the fit settles on are
+/// darker than that guess (thinner, more translucent, a colour that reflects less), the photo is
+/// brighter than the model can reach at that exposure: the body colours climb to 1 and stop
+/// there, the highlights and shading that would need more light are flattened, and the replica
+/// looks dull (session 14: 25 of 32 fitted real photos end with `R^B` or `S^B` at 1 in some
+/// channel). The barrier keeps the colours inside Table 1's range, so no descent of the
+/// appearance can leave that corner; only the exposure can.
+pub(super) fn trade_exposure(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    iters: usize,
+    stop: &AtomicBool,
+) -> Option<Evaluator> {
+    if !body_colour_at_bound(&cloth.appearance) {
+        return None;
+    }
+    let mut best_loss = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
+    let mut kept: Option<Evaluator> = None;
+    for _ in 0..EXPOSURE_STEPS {
+        if stop.load(Ordering::Relaxed) || !body_colour_at_bound(&cloth.appearance) {
+            break;
+        }
+        let at = kept.as_ref().unwrap_or(ev);
+        let scene = crate::scene::Scene { exposure: at.scene().exposure * EXPOSURE_STEP, ..at.scene().clone() };
+        let next = ev.sibling(scene, ev.target().clone(), ev.block());
+        let mut cand = cloth.clone();
+        let a = &mut cand.appearance;
+        for c in [&mut a.r_b_e, &mut a.r_b_a, &mut a.s_b_e, &mut a.s_b_a, &mut a.r_s, &mut a.t_s, &mut a.t_s_y] {
+            *c = c.map(|v| v / EXPOSURE_STEP);
+        }
+        let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+        // A NaN loss is not below: the step is not kept.
+        if l.partial_cmp(&best_loss) != Some(std::cmp::Ordering::Less) {
+            break;
+        }
+        (best_loss, *cloth, kept) = (l, cand, Some(next));
+    }
+    kept
+}
+
 /// Floor of the damping term `ε` added to the scaled Hessian's diagonal. [`lm::minimize`] takes
 /// `ε = max(1e-6·max diag, floor)`; with this floor that is `1e-6·max(max diag, 1e-12)` bit for
 /// bit (rounding is monotone), the polish's damping since it was written. `LmOptions`'s default
@@ -328,5 +393,38 @@ mod tests {
             cloth.r_e,
             cloth.r_a
         );
+    }
+
+    #[test]
+    fn a_photo_brighter_than_the_model_reaches_raises_the_exposure() {
+        // The demo cloth rendered at exposure 1.8, fitted at exposure 1: its red warp (0.85) and
+        // blue weft (0.75) would need albedos above 1, so they sit at the bound.
+        let truth = crate::fit::demo::demo_cloth();
+        let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, &LightRig::default_rig());
+        let bright = Evaluator::of_own_render(&truth, crate::scene::Scene { exposure: 1.8, ..scene.clone() });
+        let ev = Evaluator::new(scene, bright.target().clone(), 2);
+        let mut start = truth.clone();
+        let a = &mut start.appearance;
+        for c in [&mut a.r_b_e, &mut a.r_b_a, &mut a.s_b_e, &mut a.s_b_a] {
+            *c = c.map(|v| (v * 1.8).min(1.0));
+        }
+        assert!(body_colour_at_bound(&start.appearance));
+        let stop = AtomicBool::new(false);
+        // The reference: the same iterations at the exposure the fit started from.
+        let mut held = start.clone();
+        let l_held = lm_appearance(&ev, &ev.record(&held), &mut held, 8, &stop);
+        let mut cloth = start.clone();
+        let traded = trade_exposure(&ev, &mut cloth, 8, &stop).expect("a step is kept");
+        let e = traded.scene().exposure;
+        assert!((1.5..=2.5).contains(&e), "exposure {e}");
+        let l = total_loss(traded.trace_mse(&cloth), &cloth.appearance.to_vec());
+        assert!(l < 0.5 * l_held, "traded {l} vs held {l_held}");
+        // The re-traces of the traded evaluator count on the fit's.
+        assert_eq!(traded.traces().count(), ev.traces().count());
+        // A state whose colours are inside their range keeps its exposure.
+        let mut inside = truth.clone();
+        assert!(!body_colour_at_bound(&inside.appearance));
+        assert!(trade_exposure(&ev, &mut inside, 8, &stop).is_none());
+        assert_eq!(inside.appearance.r_b_e, truth.appearance.r_b_e);
     }
 }

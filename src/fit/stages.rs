@@ -11,7 +11,8 @@ use std::time::Instant;
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct StageTime {
     /// Stage name (`prep`, `rank`, `warm-up`, `sweeps`, `twin`, `view`, `joint`, `rivals`,
-    /// `toggles`, `polish`, `shape`, `hair`, `texture`, `output`).
+    /// `toggles`, `polish`, `shape`, `hair`, `exposure` (a photo's exposure traded
+    /// against body colours at their bound), `texture`, `output`).
     pub stage: &'static str,
     /// Wall seconds of the stage.
     pub secs: f64,
