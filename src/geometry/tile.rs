@@ -90,6 +90,23 @@ impl Capsule {
 /// twice as long along the yarn) made a render 23 % slower (docs/benchmarks.md, session 15).
 const LANES: usize = 4;
 
+/// Margin added to every side of a [`CapsuleGroup`]'s box, so that the BVH never culls a group
+/// whose capsule test would report a hit.
+///
+/// A box exactly as wide as its capsules (`a.min(b) − r`, `a.max(b) + r`) has its faces on the
+/// tube's silhouette, where the capsule test's discriminant is zero and its rounding decides hit
+/// or miss, while the BVH's slab test sees a different ray: an axis-parallel direction has its
+/// zero components nudged to ±1e-7 (obvhs takes ±1/`f32::EPSILON` as their inverse), so a ray
+/// on a face drifts `1.2e-7·t` out of the box and is culled. Vertical rays on the yarns' edges
+/// (a plain weave's `x = 5 ± 2.5`) then missed tubes that the capsule test hits, and which of
+/// them did depended on the BVH's boxes (session 15, `docs/benchmarks.md`: on a 60×60 grid over
+/// the open plain the scalar test misses 888 rays, the per-capsule BVH missed 954, the grouped
+/// one 922). The capsule test's own error at the silhouette is `|o − a|²·ε/(2r)` (the
+/// cancellation in `qc`), under 1e-4 for origins within a tile of a few hundred units and
+/// r ≥ 0.1, and the drift stays under it for `t` below 8000: 1e-3 (a ten-thousandth of a cell)
+/// covers both and costs nothing measurable.
+const BOX_PAD: f32 = 1e-3;
+
 /// Four consecutive capsules of one chain (a yarn or a hair), stored lane by lane (structure of
 /// arrays) so that one ray is tested against all four at once with 4-wide SIMD (glam's `Vec4`,
 /// SSE2 on x86-64). The BVH is built over groups: a quarter of the primitives, each box the union
@@ -143,6 +160,7 @@ impl CapsuleGroup {
             lo = lo.min(b.min);
             hi = hi.max(b.max);
         }
+        let (lo, hi) = (lo - Vec3A::splat(BOX_PAD), hi + Vec3A::splat(BOX_PAD));
         CapsuleGroup {
             ax: lane(&|k| k.a.x),
             ay: lane(&|k| k.a.y),
@@ -599,6 +617,122 @@ pub(crate) mod tests {
             }
         }
         assert!(finite > 10_000 && inside > 100 && degenerate > 20, "{finite} {inside} {degenerate}");
+    }
+
+    /// What `closest` must answer, without the BVH: the scalar test of every capsule of the tile
+    /// at every tile shift `(kx, ky)` in `kx_range × ky_range` (the unwrapped fabric, in the
+    /// stretched space), the nearest entry as `(t, capsule index)`.
+    fn brute_closest(
+        g: &TileGeometry,
+        o: Vec3A,
+        d: Vec3A,
+        kx_range: std::ops::RangeInclusive<i32>,
+        ky_range: std::ops::RangeInclusive<i32>,
+    ) -> Option<(f32, usize)> {
+        let mut best: Option<(f32, usize)> = None;
+        for kx in kx_range {
+            for ky in ky_range.clone() {
+                let shift = Vec3A::new(kx as f32 * g.set.tile_x, ky as f32 * g.set.tile_y, 0.0);
+                for (i, c) in g.caps.iter().enumerate() {
+                    let t = c.intersect(o - shift, d);
+                    if t.is_finite() && best.is_none_or(|(bt, _)| t < bt) {
+                        best = Some((t, i));
+                    }
+                }
+            }
+        }
+        best
+    }
+
+    /// The tracer's id of capsule `i`'s chain: (yarn, hair id if a hair).
+    fn chain_id(g: &TileGeometry, i: usize) -> (usize, Option<usize>) {
+        let id = g.caps[i].yarn as usize;
+        if id < g.set.yarns.len() {
+            (id, None)
+        } else {
+            (g.hair_root(id), Some(id))
+        }
+    }
+
+    #[test]
+    fn bvh_closest_equals_brute_force_on_vertical_and_oblique_rays() {
+        // Open plain and twill (r = 2.5 on pitch 10: wide gaps), bare and hairy. Vertical rays on a
+        // grid of step 1/3, which puts whole columns and rows exactly on the tubes' edges
+        // (x = 5 ± 2.5, …: the silhouettes, where the capsule test's rounding decides): the BVH
+        // must not cull a group whose capsule test hits (a box face on the silhouette and the
+        // ray's nudged zero components drifting out of it did, `BOX_PAD`), so the tracer's
+        // distance has the scalar test's bits. Oblique rays, some with a zero x or y component,
+        // wrap across the tile's seams: the tracer answers the unwrapped fabric's nearest entry
+        // (to the wraps' rounding) on the same yarn or hair.
+        let (mut graze, mut hits, mut misses, mut hair_hits, mut wraps) = (0, 0, 0, 0, 0);
+        for name in ["plain", "twill22"] {
+            let p = WeavePattern::preset(name).unwrap();
+            for density in [0.0, 3.0] {
+                let g = TileGeometry::with_hair(YarnSet::new(&p, 2.5, 2.5), &Hair { density, ..Hair::default() });
+                let (tx, ty) = (g.set.tile_x, g.set.tile_y);
+                let (nx, ny) = ((tx * 3.0) as usize, (ty * 3.0) as usize);
+                for i in 0..nx {
+                    for j in 0..ny {
+                        let o = Vec3::new((i as f32 + 0.5) / 3.0, (j as f32 + 0.5) / 3.0, 40.0);
+                        let got = g.closest(o, -Vec3::Z, None);
+                        let want = brute_closest(&g, o.into(), -Vec3A::Z, 0..=0, 0..=0);
+                        let on_edge = |c: f32| ((c - 2.5) / 5.0).fract() == 0.0;
+                        graze += (on_edge(o.x) || on_edge(o.y)) as usize;
+                        match (got, want) {
+                            (None, None) => misses += 1,
+                            (Some(h), Some((t, k))) => {
+                                assert_eq!(
+                                    h.t.to_bits(),
+                                    t.to_bits(),
+                                    "{name} {density} vertical at {o}: {} vs {t}",
+                                    h.t
+                                );
+                                assert_eq!((h.yarn, h.hair.map(|x| x.id)), chain_id(&g, k), "{name} {density} at {o}");
+                                hits += 1;
+                                hair_hits += h.hair.is_some() as usize;
+                            }
+                            (h, w) => panic!("{name} {density} vertical at {o}: tracer {h:?}, brute force {w:?}"),
+                        }
+                    }
+                }
+                // Oblique rays from above the slab, azimuths every 25° (0°, 90°, 180°, 270° among
+                // them: a zero x or y component) and three tilts, origins off any special value.
+                let z0 = g.z_hi + 1.0;
+                for k in 0..600 {
+                    let az = (k % 15) as f32 * 25f32.to_radians();
+                    let tilt = [0.4f32, 0.8, 1.2][k % 3];
+                    let (s, c) = az.sin_cos();
+                    let d = Vec3::new(tilt * c, tilt * s, -1.0).normalize();
+                    let d =
+                        Vec3::new(if c.abs() < 1e-6 { 0.0 } else { d.x }, if s.abs() < 1e-6 { 0.0 } else { d.y }, d.z);
+                    let o =
+                        Vec3::new((k as f32 * 0.618_034).fract() * tx, (k as f32 * 0.414_214 + 0.1).fract() * ty, z0);
+                    // The ray's xy path through the slab, and the shifts whose copies can reach it.
+                    let t_out = (z0 - g.z_lo) / -d.z;
+                    let (x1, y1) = (o.x + d.x * t_out, o.y + d.y * t_out);
+                    let span = |a: f32, b: f32, size: f32| {
+                        (a.min(b) / size).floor() as i32 - 1..=(a.max(b) / size).floor() as i32 + 1
+                    };
+                    let want = brute_closest(&g, o.into(), d.into(), span(o.x, x1, tx), span(o.y, y1, ty));
+                    match (g.closest(o, d, None), want) {
+                        (None, None) => misses += 1,
+                        (Some(h), Some((t, k2))) => {
+                            assert!((h.t - t).abs() < 1e-3, "{name} {density} ray {k}: {} vs {t}", h.t);
+                            assert_eq!((h.yarn, h.hair.map(|x| x.id)), chain_id(&g, k2), "{name} {density} ray {k}");
+                            let p = o + d * t;
+                            wraps += !(0.0..tx).contains(&p.x) as usize + !(0.0..ty).contains(&p.y) as usize;
+                            hits += 1;
+                            hair_hits += h.hair.is_some() as usize;
+                        }
+                        (h, w) => panic!("{name} {density} ray {k} ({o}, {d}): tracer {h:?}, brute force {w:?}"),
+                    }
+                }
+            }
+        }
+        assert!(
+            graze > 1000 && hits > 10_000 && misses > 2000 && hair_hits > 100 && wraps > 300,
+            "{graze} {hits} {misses} {hair_hits} {wraps}"
+        );
     }
 
     #[test]
