@@ -10,11 +10,9 @@ use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// Default recipe path, relative to the repository root.
-pub const DEFAULT_RECIPE: &str = "datagen/recipe.toml";
-
-/// The text of [`DEFAULT_RECIPE`], built into the binary: `woven generate` without `--recipe` uses
-/// it, so the default set can be made from any folder (a cluster job's container has no checkout).
+/// The text of the repository's default recipe, `datagen/recipe.toml`, built into the binary:
+/// `woven generate` without `--recipe` uses it, so the default set can be made from any folder (a
+/// cluster job's container has no checkout).
 pub const EMBEDDED_RECIPE_TOML: &str = include_str!("../../datagen/recipe.toml");
 
 /// Shape of a prior over `[lo, hi]`.
