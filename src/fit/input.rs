@@ -218,8 +218,8 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, f
 /// Least [`boundary_luma_contrast`] (boundaries brighter than the yarn centres, as a fraction of
 /// the mean luminance) for which [`cue_phase`] moves an open axis of a front-lit picture by half
 /// a cell. Below it the fold's contrast is no evidence either way (a twill whose dark lines are
-/// slanted across the crop, a cloth of flat yarns): of the 32 prepared real photos, the open
-/// axes above it read 0.075–0.16, those left alone −0.46–0.04; the one Mitsuba render with an
+/// slanted across the crop, a cloth of flat yarns): on 24 prepared real photos, the open
+/// axes above it read 0.075–0.15, those left alone −0.46–0.04; the one Mitsuba render with an
 /// open front-lit axis, d08, reads −0.003.
 const BOUNDARY_LUMA_FLIP: f32 = 0.05;
 
