@@ -125,8 +125,10 @@ const HOLE_MIN_CONCENTRATION: f32 = 0.5;
 /// preparation moves with the crop, so that the output frames the input as before. Returns the
 /// shift in target pixels (fit resolution).
 pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, i32) {
-    let use_holes = !t.prep.as_ref().and_then(super::capture::estimate_capture).is_some_and(|e| front_lit_for_sure(&e));
-    let (dx, dy) = cue_phase(&t.image, model, c, use_holes);
+    let capture = t.prep.as_ref().and_then(super::capture::estimate_capture);
+    let use_holes = !capture.as_ref().is_some_and(front_lit_for_sure);
+    let front_lit = capture.is_some_and(|e| e.capture == super::capture::Capture::Front);
+    let (dx, dy) = cue_phase(&t.image, model, c, use_holes, front_lit);
     shift_target(t, (dx, dy), c);
     (dx, dy)
 }
@@ -153,8 +155,19 @@ pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, 
 /// 3. the model's fold ([`cell_phase_given`] against `model`, a render of any cloth on the grid),
 ///    searched only along the axes steps 1 and 2 leave open, the others held where those put
 ///    them: searched over both axes at once, its best on the FabricNET plain W044 sat half a cell
-///    off along the x the edges had settled and took y 6 of 16 px off with it.
-pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool) -> (i32, i32) {
+///    off along the x the edges had settled and took y 6 of 16 px off with it;
+/// 4. on a front-lit picture (`front_lit`: the capture estimated from the photo, `fit::capture`),
+///    each axis step 3 placed is moved by half a cell when its boundaries came out brighter than
+///    its yarn centres ([`boundary_luma_contrast`] above [`BOUNDARY_LUMA_FLIP`]). Lit from the
+///    camera's side, a yarn is brightest along its top and darkest where it turns away and meets
+///    its neighbour or a gap (the cosine fall-off across a tube, the shadowed gap), so the dark
+///    lines of the folded luminance are the boundaries. The fold of step 3 matches edges, which
+///    cannot tell a boundary from a centre: a soft photo's edges lie half way between the two,
+///    and a render's silhouettes match a photo's highlight edges half a cell away. On a crop left
+///    on its yarn centres, the fit drives the radius of that family to its lower bound, so that
+///    the gap between thin yarns lands where the photo is dark (FabricNET W012: `r_a` 1.00, crop
+///    21.1 dB; put back on its boundaries: `r_a` 2.20, 22.9 dB; docs/benchmarks.md, session 16).
+pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, front_lit: bool) -> (i32, i32) {
     let ((bx, by), (sx, sy)) = boundary_phase(image, c);
     let strong = (sx >= BOUNDARY_MIN_STRENGTH, sy >= BOUNDARY_MIN_STRENGTH);
     if strong.0 && strong.1 {
@@ -186,7 +199,68 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool) -
     }
     // Step 3 places only the axes left open, the others held where they are settled.
     let open = cell_phase_given(image, model, c, settled).0;
-    (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1))
+    let mut phase = (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1));
+    // Step 4: on a front-lit picture, an open axis whose boundaries came out brighter than its
+    // yarn centres is half a cell off.
+    let contrast = boundary_luma_contrast(image, c, phase);
+    if front_lit {
+        let half = |v: i32| (v + ci / 2 + ci / 2).rem_euclid(ci) - ci / 2;
+        if settled.0.is_none() && contrast.0 > BOUNDARY_LUMA_FLIP {
+            phase.0 = half(phase.0);
+        }
+        if settled.1.is_none() && contrast.1 > BOUNDARY_LUMA_FLIP {
+            phase.1 = half(phase.1);
+        }
+    }
+    phase
+}
+
+/// Least [`boundary_luma_contrast`] (boundaries brighter than the yarn centres, as a fraction of
+/// the mean luminance) for which [`cue_phase`] moves an open axis of a front-lit picture by half
+/// a cell. Below it the fold's contrast is no evidence either way (a twill whose dark lines are
+/// slanted across the crop, a cloth of flat yarns): on 24 prepared real photos, the open
+/// axes above it read 0.075–0.15, those left alone −0.46–0.04; the one Mitsuba render with an
+/// open front-lit axis, d08, reads −0.003.
+const BOUNDARY_LUMA_FLIP: f32 = 0.05;
+
+/// How much brighter the cell boundaries of `image` (`c`-pixel cells), started at the shift
+/// `(dx, dy)`, are than the cell centres, along each axis: the cosine coefficient of the first
+/// Fourier harmonic of the luminance (sRGB, as [`boundary_phase`] reads it) folded into one cell,
+/// `a = (2/c) Σ_u L(u) cos(2π(u + ½)/c)` with `u` the pixel's offset from the boundary, over the
+/// mean luminance. Positive: the boundaries are the bright lines; negative: the dark ones.
+pub(crate) fn boundary_luma_contrast(image: &Image, c: u32, (dx, dy): (i32, i32)) -> (f32, f32) {
+    let (w, h) = (image.width as i32, image.height as i32);
+    let ci = c.max(1) as i32;
+    let (mut fx, mut fy) = (vec![0.0f64; ci as usize], vec![0.0f64; ci as usize]);
+    let mut total = 0.0f64;
+    for y in 0..h {
+        for x in 0..w {
+            let p = image.get(x as u32, y as u32);
+            let l = crate::image_io::linear_to_srgb((p[0] + p[1] + p[2]) / 3.0) as f64;
+            // Pixel (x, y) of the image lies at (x − dx, y − dy) of the shifted one.
+            fx[(x - dx).rem_euclid(ci) as usize] += l;
+            fy[(y - dy).rem_euclid(ci) as usize] += l;
+            total += l;
+        }
+    }
+    let mean = total / (w as f64 * h as f64).max(1.0);
+    let coef = |f: &[f64], across: i32| {
+        let n = f.len() as f64;
+        let a: f64 = f
+            .iter()
+            .enumerate()
+            .map(|(u, v)| v / across as f64 * (std::f64::consts::TAU * (u as f64 + 0.5) / n).cos())
+            .sum::<f64>()
+            * 2.0
+            / n;
+        if mean > 0.0 {
+            (a / mean) as f32
+        } else {
+            0.0
+        }
+    };
+    // Each fold bin sums `across` pixels per cell period: h·(w/c)/… normalised to a mean.
+    (coef(&fx, h * (w / ci).max(1)), coef(&fy, w * (h / ci).max(1)))
 }
 
 /// Whether the capture estimated from the whole photo says, beyond doubt, that its bright spots
@@ -452,15 +526,84 @@ mod tests {
                 fold_missed += 1;
             }
             // The holes put it back: compact spots, agreeing with the edges on x.
-            let (dx, dy) = cue_phase(&img, &model, c, true);
+            let (dx, dy) = cue_phase(&img, &model, c, true, false);
             assert!(
                 off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
                 "framed ({sx}, {sy}) off, shifted by ({dx}, {dy})"
             );
             // Without the holes, the fold (x held at the edges' phase) decides y as before.
-            assert_eq!(cue_phase(&img, &model, c, false).1, fold.1);
+            assert_eq!(cue_phase(&img, &model, c, false, false).1, fold.1);
         }
         assert!(fold_missed >= 2, "the model fold missed only {fold_missed} of 4");
+    }
+
+    /// Soft yarn tops lit from the front, as a blurred photo's mean repeat shows them (`c` px per
+    /// cell, 2 × 2 cells): each cell a rounded bump, brightest at its centre and darkest on the
+    /// cell boundaries, its sRGB value `0.1 + 0.8·s(u)·s(v)` (the profile the edge cue reads) with `s(u) = (1 + cos πu)/2` and `u, v ∈ [−1, 1]`
+    /// across the cell. Its edges gather half way between the boundaries and the centres (the slope
+    /// of `s` peaks at `u = ±½`), so their fold has period half a cell, no fundamental, and no
+    /// axis is settled by them: the model's fold decides.
+    fn soft_front_lit_bumps(c: u32) -> Image {
+        let n = 2u32;
+        let s = |v: u32| {
+            let u = ((v % c) as f32 + 0.5) / c as f32 * 2.0 - 1.0;
+            0.5 * (1.0 + (std::f32::consts::PI * u).cos())
+        };
+        let lin = |l: f32| crate::image_io::srgb_to_linear(l);
+        let data = (0..n * c).flat_map(|y| (0..n * c).map(move |x| [lin(0.1 + 0.8 * s(x) * s(y)); 3])).collect();
+        Image::new(n * c, n * c, data)
+    }
+
+    #[test]
+    fn front_lit_boundaries_are_the_dark_lines() {
+        let c = 16;
+        let img = soft_front_lit_bumps(c);
+        let (ax, ay) = boundary_luma_contrast(&img, c, (0, 0));
+        assert!(ax < -0.3 && ay < -0.3, "framed on the boundaries: {ax} {ay}");
+        let (bx, by) = boundary_luma_contrast(&img, c, (8, 8));
+        assert!(bx > 0.3 && by > 0.3, "half a cell off: {bx} {by}");
+        // The contrast of a shifted image at the shift that undoes it is the original's.
+        let moved = shift_periodic_for_test(&img, 5, -3);
+        let (mx, my) = boundary_luma_contrast(&moved, c, (-5, 3));
+        assert!((mx - ax).abs() < 1e-4 && (my - ay).abs() < 1e-4, "{mx} {my} vs {ax} {ay}");
+    }
+
+    fn shift_periodic_for_test(img: &Image, dx: i32, dy: i32) -> Image {
+        crate::fit::target::shift_periodic(img, dx, dy)
+    }
+
+    /// Where no image cue settles an axis, the model's fold decides, and it can land the crop on
+    /// the yarn centres: the edges it matches (a render's yarn silhouettes) may be a photo's
+    /// highlight edges half a cell away, and a soft photo's edges, half way between its
+    /// boundaries and centres, fold alike at both phases. Here the model is the picture itself
+    /// framed half a cell off, so that the fold lands there for sure. On a front-lit picture the
+    /// dark lines are the boundaries, and step 4 puts the crop back on them; not front-lit, the
+    /// fold's phase stands (the old behaviour).
+    #[test]
+    fn a_front_lit_crop_on_its_yarn_centres_goes_back_to_the_dark_boundaries() {
+        use crate::fit::target::shift_periodic;
+        let c = 16;
+        let sharp = soft_front_lit_bumps(c);
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        let half_off = shift_periodic(&sharp, 8, 8);
+        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-7, 2), (3, 11)] {
+            let img = shift_periodic(&sharp, sx, sy);
+            let (_, (ex, ey)) = boundary_phase(&img, c);
+            assert!(ex < BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
+            let (fx, fy) = cue_phase(&img, &half_off, c, false, false);
+            assert!(
+                off(sx + fx).abs() >= 7 && off(sy + fy).abs() >= 7,
+                "framed ({sx}, {sy}): the fold gave ({fx}, {fy}), not half a cell off"
+            );
+            let (dx, dy) = cue_phase(&img, &half_off, c, false, true);
+            assert!(
+                off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                "framed ({sx}, {sy}) off: shifted by ({dx}, {dy}), the fold alone ({fx}, {fy})"
+            );
+        }
+        // A crop the fold put on the boundaries stays there.
+        let (dx, dy) = cue_phase(&shift_periodic(&sharp, 5, -3), &sharp, c, false, true);
+        assert!(off(5 + dx).abs() <= 1 && off(-3 + dy).abs() <= 1, "({dx}, {dy})");
     }
 
     #[test]
