@@ -17,11 +17,34 @@ pub struct BenchArgs {
     /// Quick run (fewer repetitions, lower reference spp).
     #[arg(long)]
     pub quick: bool,
+    /// Python interpreter with Mitsuba 3 installed, for the side-by-side timing (default: the
+    /// `WOVEN_MITSUBA_PYTHON` environment variable, else `python3`); without Mitsuba the section
+    /// says so and the bench carries on.
+    #[arg(long, value_name = "PATH")]
+    pub mitsuba_python: Option<PathBuf>,
+    /// Skip the side-by-side timing with Mitsuba 3.
+    #[arg(long, conflicts_with = "mitsuba_python")]
+    pub no_mitsuba: bool,
+}
+
+impl BenchArgs {
+    /// The interpreter for Mitsuba: the flag, else `WOVEN_MITSUBA_PYTHON` (when not empty), else
+    /// `python3`; `None` with `--no-mitsuba`.
+    pub fn mitsuba_python(&self) -> Option<PathBuf> {
+        if self.no_mitsuba {
+            return None;
+        }
+        self.mitsuba_python
+            .clone()
+            .or_else(|| std::env::var_os("WOVEN_MITSUBA_PYTHON").filter(|v| !v.is_empty()).map(PathBuf::from))
+            .or_else(|| Some(PathBuf::from("python3")))
+    }
 }
 
 /// `woven bench`.
 pub fn run_bench(a: &BenchArgs) -> Result<()> {
-    let md = woven::bench::run(a.quick, &IndicatifProgress::new(true))?;
+    let mitsuba = woven::bench::MitsubaBench { python: a.mitsuba_python(), woven_exe: std::env::current_exe().ok() };
+    let md = woven::bench::run(a.quick, &mitsuba, &IndicatifProgress::new(true))?;
     out!("{md}");
     replace_section(&a.out, "Forward model", &md)?;
     eprintln!("wrote {}", a.out.display());
