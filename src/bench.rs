@@ -225,10 +225,10 @@ fn mitsuba_side_by_side(cfg: &MitsubaBench, woven: &WovenSide, progress: &dyn Pr
         md.push_str("Skipped: no Python interpreter given (`--mitsuba-python PATH` or `WOVEN_MITSUBA_PYTHON`).\n");
         return Ok(md);
     };
-    let dir = std::env::temp_dir().join(format!("woven-bench-mitsuba-{}", std::process::id()));
-    let result = side_by_side_in(cfg, python, &dir, woven, progress);
-    let _ = std::fs::remove_dir_all(&dir);
-    md.push_str(&result?);
+    // A folder of its own, removed when dropped: two side-by-side runs in one process (the tests
+    // run in parallel) must not share it.
+    let dir = tempfile::Builder::new().prefix("woven-bench-mitsuba-").tempdir().context("creating a scratch folder")?;
+    md.push_str(&side_by_side_in(cfg, python, dir.path(), woven, progress)?);
     Ok(md)
 }
 
@@ -412,27 +412,22 @@ fn side_by_side_in(
     let w2 = woven.rows.get(&(spp, threads)).map_or((f64::NAN, f64::NAN), |r| (r.0, r.1));
     let m2 = m_rows.get(&spp).map_or((f64::NAN, f64::NAN), |r| (r.0, r.1));
     writeln!(md, "\n| at {spp} spp, {threads} threads | woven wall (s) | Mitsuba `{variant}` wall (s) | woven / Mitsuba, wall | woven CPU (s) | Mitsuba CPU (s) | woven / Mitsuba, CPU |\n|---|---|---|---|---|---|---|")?;
-    writeln!(
-        md,
-        "| render only | {} | {} | {} | {} | {} | {} |",
-        fmt(w2.0, 3),
-        fmt(m2.0, 3),
-        ratio(w2.0, m2.0),
-        fmt(w2.1, 2),
-        fmt(m2.1, 2),
-        ratio(w2.1, m2.1)
-    )?;
+    // One row of the ratio table: woven's and Mitsuba's (wall, CPU) seconds and their ratios.
+    let ratio_row = |md: &mut String, label: &str, w: (f64, f64), m: (f64, f64)| {
+        writeln!(
+            md,
+            "| {label} | {} | {} | {} | {} | {} | {} |",
+            fmt(w.0, 3),
+            fmt(m.0, 3),
+            ratio(w.0, m.0),
+            fmt(w.1, 2),
+            fmt(m.1, 2),
+            ratio(w.1, m.1)
+        )
+    };
+    ratio_row(&mut md, "render only", w2, m2)?;
     let ww = w_whole.unwrap_or((f64::NAN, f64::NAN));
-    writeln!(
-        md,
-        "| whole process (start-up, scene load, render, image written) | {} | {} | {} | {} | {} | {} |",
-        fmt(ww.0, 3),
-        fmt(m_whole.0, 3),
-        ratio(ww.0, m_whole.0),
-        fmt(ww.1, 2),
-        fmt(m_whole.1, 2),
-        ratio(ww.1, m_whole.1)
-    )?;
+    ratio_row(&mut md, "whole process (start-up, scene load, render, image written)", ww, m_whole)?;
     // Equal noise, measured: the fewest spp of woven's table whose relative RMSE is at most
     // Mitsuba's at the comparison's spp (no extrapolation by the 1/√spp law).
     if let Some(&(tm, cm, _, em, _)) = m_rows.get(&spp) {
@@ -443,15 +438,13 @@ fn side_by_side_in(
             .filter(|((_, th), r)| *th == threads && r.2 / woven.reference_mean <= target)
             .min_by_key(|((s, _), _)| *s);
         match hit {
-            Some(((s, _), &(tw, cw, ew, _))) => writeln!(
-                md,
-                "| render only at equal noise: woven at {s} spp (relative RMSE {:.3}) against Mitsuba at {spp} spp ({target:.3}) | {tw:.3} | {tm:.3} | {} | {} | {} | {} |",
-                ew / woven.reference_mean,
-                ratio(tw, tm),
-                fmt(cw, 2),
-                fmt(cm, 2),
-                ratio(cw, cm)
-            )?,
+            Some(((s, _), &(tw, cw, ew, _))) => {
+                let label = format!(
+                    "render only at equal noise: woven at {s} spp (relative RMSE {:.3}) against Mitsuba at {spp} spp ({target:.3})",
+                    ew / woven.reference_mean
+                );
+                ratio_row(&mut md, &label, (tw, cw), (tm, cm))?
+            }
             None => writeln!(
                 md,
                 "| render only at equal noise | — (no spp of woven's table reaches Mitsuba's relative RMSE {target:.3}) | {tm:.3} | — | | | |"

@@ -202,8 +202,8 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, f
     let mut phase = (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1));
     // Step 4: on a front-lit picture, an open axis whose boundaries came out brighter than its
     // yarn centres is half a cell off.
-    let contrast = boundary_luma_contrast(image, c, phase);
     if front_lit {
+        let contrast = boundary_luma_contrast(image, c, phase);
         let half = |v: i32| (v + ci / 2 + ci / 2).rem_euclid(ci) - ci / 2;
         if settled.0.is_none() && contrast.0 > BOUNDARY_LUMA_FLIP {
             phase.0 = half(phase.0);
