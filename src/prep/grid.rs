@@ -273,7 +273,13 @@ pub const FINE_DIVIDES_TOL: f64 = 0.015;
 /// pitch, but every yarn boundary makes edges: a fraction is taken when its edge fundamental is at
 /// least 0.6 of the one at `pitch_ac` and the profile's autocorrelation has a peak ≥ 0.25 within
 /// ±25 % of it, which rules out half a yarn (yarn centre against gap correlates negatively) and the
-/// short lags at which any smooth profile correlates. A fraction without that profile peak is
+/// short lags at which any smooth profile correlates. That peak is looked for in the profile of
+/// the luminance and in the profile of its logarithm ([`log_profile`]), whichever is higher: a
+/// family much darker than the other (paired dark wefts between bright warp floats, a warp rib's
+/// grey weft pairs, a basket's dark blocks) shows its yarn boundaries as a relative contrast that
+/// the linear profile scales down to nothing beside the bright floats' steps, while in the log
+/// profile a boundary between dark yarns counts as much as one between bright yarns (the edge
+/// energy is taken in log luminance for the same reason). A fraction without that profile peak is
 /// also taken where the edge energy itself repeats there ([`edge_autocorr_peak`] ≥ 0.25) and its
 /// fine cells are alike in mean brightness ([`fine_class_spread`] ≤ [`MAX_FINE_CLASS_SPREAD`]):
 /// a 4-end crowfoot's wefts have equal means but mirrored shading, so its profile repeats only at
@@ -282,6 +288,8 @@ pub const FINE_DIVIDES_TOL: f64 = 0.015;
 fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) -> (f64, (f64, f64, f64)) {
     let base = edge_grid(g, axis_x, pitch_ac);
     let ac = autocorr(p, p.len() / 2);
+    let lp = log_profile(g, axis_x);
+    let lac = autocorr(&lp, lp.len() / 2);
     let mut best = (pitch_ac, base);
     for k in 2..=8 {
         let cand = pitch_ac / k as f64;
@@ -293,10 +301,18 @@ fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) 
         // lag, but only a real repeat brings the correlation back up.
         let (lo, hi) =
             ((0.75 * eg.0).floor() as usize, ((1.25 * eg.0).ceil() as usize).min(ac.len().saturating_sub(2)));
-        let peak = (lo.max(1)..=hi)
-            .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
-            .map(|d| ac[d])
-            .fold(f64::MIN, f64::max);
+        let peak_of = |ac: &[f64], lo: usize, hi: usize| {
+            (lo.max(1)..=hi.min(ac.len().saturating_sub(2)))
+                .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
+                .map(|d| ac[d])
+                .fold(f64::MIN, f64::max)
+        };
+        // The log profile's peak must also sit where `k` yarns fill the repeat (within ±12 % of
+        // `pitch_ac / k`, the edge search's range): its peaks are sharp at the true yarn pitch,
+        // and the ±25 % window alone let the neighbouring fractions (a 3×3 basket's 64 px repeat
+        // over 7 or 8 yarns) claim the peak of the right one (6 yarns of 10.7 px).
+        let (llo, lhi) = ((0.88 * cand).ceil() as usize, (1.12 * cand).floor() as usize);
+        let peak = peak_of(&ac, lo, hi).max(peak_of(&lac, llo.max(lo), lhi.min(hi)));
         if eg.2 < MIN_EDGE_CONFIDENCE || eg.2 < 0.6 * base.2 {
             continue;
         }
@@ -316,6 +332,19 @@ fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) 
         }
     }
     best
+}
+
+/// The integral projection of the log luminance `log(g + ε)` along `axis_x` (as [`profile`]),
+/// detrended, with ε = 2 % of the image mean as in [`edge_energy`] (dark gaps and sensor noise must
+/// not dominate the log). A yarn boundary is a *relative* drop of brightness, the same in the log
+/// whatever the yarn's own brightness; see [`yarn_pitch`] for where it matters.
+pub fn log_profile(g: &Gray, axis_x: bool) -> Vec<f64> {
+    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
+    let eps = (0.02 * mean).max(1e-6);
+    let lg = Gray { w: g.w, h: g.h, data: g.data.iter().map(|&v| ((v as f64).max(0.0) + eps).ln() as f32).collect() };
+    let mut p = profile(&lg, axis_x);
+    detrend(&mut p);
+    p
 }
 
 /// Highest local maximum of the autocorrelation of the edge energy ([`edge_energy`], mean and
@@ -995,6 +1024,43 @@ mod tests {
             .fold(f64::MIN, f64::max);
         let edges = eg.2 >= MIN_EDGE_CONFIDENCE && eg.2 >= 0.6 * base && edge_autocorr_peak(g, axis_x, eg.0) >= 0.25;
         (edges && peak < 0.25).then(|| fine_class_spread(&p, eg.0, eg.1, k))
+    }
+
+    #[test]
+    fn dark_wefts_paired_between_bright_warp_floats_get_their_own_pitch() {
+        // A 3×3 basket of bright warps over dark wefts, 11 px yarns, as in a Mitsuba render of a
+        // fresh cross-renderer set (its wefts were found 3 at a time, 31 px; the linear-profile
+        // rule alone gives 33 px here). Each warp float is dark where it dives under a weft (the
+        // last 15 % of a yarn before a weft-on-top cell), so the row profile steps at every group
+        // of wefts; between the dark wefts the gap is darker still, but a drop of 0.06 → 0.004 is
+        // nothing in the linear profile beside the floats' 0.8 → 0.02.
+        let (p, w) = (11.0f64, 264usize);
+        let warp_col = |a: f64| 0.8 * (0.3 + 0.7 * (std::f64::consts::PI * a).cos());
+        let weft_col =
+            |a: f64| if a.abs() > 0.42 { 0.004 } else { 0.06 * (0.3 + 0.7 * (std::f64::consts::PI * a).cos()) };
+        let weft_on_top = |i: i64, j: i64| (i.div_euclid(3) + j.div_euclid(3)).rem_euclid(2) == 1;
+        let mut g = Gray::new(w, w);
+        for y in 0..w {
+            for x in 0..w {
+                let (tx, ty) = ((x as f64 + 0.5) / p, (y as f64 + 0.5) / p);
+                let (i, j) = (ty.floor() as i64, tx.floor() as i64);
+                let (fx, fy) = (tx - tx.floor() - 0.5, ty - ty.floor() - 0.5);
+                let v = if weft_on_top(i, j) {
+                    weft_col(fy)
+                } else if (fy > 0.35 && weft_on_top(i + 1, j)) || (fy < -0.35 && weft_on_top(i - 1, j)) {
+                    // The float ends: the warp dives under the next cell's weft.
+                    0.02
+                } else {
+                    warp_col(fx)
+                };
+                g.data[y * w + x] = v as f32;
+            }
+        }
+        let g = crate::prep::image_ops::blur_gray(&g, 1.0);
+        let a = analyze_axis(&g, true, 4.0).expect("warp grid");
+        assert!((a.pitch as f64 - p).abs() < 0.5, "warp pitch {}", a.pitch);
+        let b = analyze_axis(&g, false, 4.0).expect("weft grid");
+        assert!((b.pitch as f64 - p).abs() < 0.5, "weft pitch {} for {p} px wefts", b.pitch);
     }
 
     #[test]
