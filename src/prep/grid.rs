@@ -284,12 +284,23 @@ pub const FINE_DIVIDES_TOL: f64 = 0.015;
 /// fine cells are alike in mean brightness ([`fine_class_spread`] ≤ [`MAX_FINE_CLASS_SPREAD`]):
 /// a 4-end crowfoot's wefts have equal means but mirrored shading, so its profile repeats only at
 /// two wefts, while a yarn cut in two by the edges of its own crown puts bright and dark halves
-/// into alternate fine cells. The smallest such fraction wins.
-fn yarn_pitch(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, min_pitch: f64) -> (f64, (f64, f64, f64)) {
+/// into alternate fine cells. The smallest such fraction wins. With [`Fractions::Linear`] the log
+/// profile is not consulted (see [`Fractions`] for where that matters).
+fn yarn_pitch(
+    g: &Gray,
+    axis_x: bool,
+    p: &[f64],
+    pitch_ac: f64,
+    min_pitch: f64,
+    fractions: Fractions,
+) -> (f64, (f64, f64, f64)) {
     let base = edge_grid(g, axis_x, pitch_ac);
     let ac = autocorr(p, p.len() / 2);
-    let lp = log_profile(g, axis_x);
-    let lac = autocorr(&lp, lp.len() / 2);
+    // Without the log rule the log profile's autocorrelation is empty, so it has no peak.
+    let lac = match fractions {
+        Fractions::LinearOrLog => autocorr(&log_profile(g, axis_x), p.len() / 2),
+        Fractions::Linear => Vec::new(),
+    };
     let mut best = (pitch_ac, base);
     for k in 2..=8 {
         let cand = pitch_ac / k as f64;
@@ -393,13 +404,40 @@ fn fine_class_spread(p: &[f64], q: f64, phase: f64, k: usize) -> f64 {
     between / sd
 }
 
+/// Which profiles may show [`yarn_pitch`] that a whole fraction of the autocorrelation's pitch is
+/// the yarn pitch.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fractions {
+    /// The luminance profile or the log-luminance profile ([`log_profile`]): the preparation's
+    /// grid, on an image already rotated to its yarns, where paired dark yarns show their own
+    /// boundaries only as a relative drop.
+    LinearOrLog,
+    /// The luminance profile only: for comparing rotation angles by their yarn boundaries
+    /// (`rectify`'s edge-lattice score). Rotated off the yarns, a cloth's two-colour cell
+    /// lattice projects onto the rows as a profile that repeats at whole fractions of its repeat
+    /// (the plain's checker at atan(1/5) from its yarns: every 48/√26 ≈ 9.4 px for 24 px
+    /// yarns), and its log profile — which lifts a harmonic that small beside the linear one —
+    /// repeats there well enough (0.29–0.37 against 0.10–0.16 in the linear profile, on the
+    /// front-lit plain render of `tests/real.rs`), so with the log rule that angle found a
+    /// strong edge lattice at the fraction and out-scored the yarns (edge score 0.11 against
+    /// 0.047): the cloth was turned 11° off its yarns and refused. Which angle holds the yarns
+    /// is decided by the boundaries every yarn makes in the intensity, and only then are dark
+    /// yarn pairs counted from the log profile.
+    Linear,
+}
+
 /// Full analysis of one axis of a grey image: `axis_x = true` analyses the column profile, i.e.
 /// the boundaries between warp yarns (pitch in x).
 pub fn analyze_axis(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<AxisGrid> {
+    analyze_axis_with(g, axis_x, min_pitch, Fractions::LinearOrLog)
+}
+
+/// [`analyze_axis`] with the profiles that may reveal a finer yarn pitch chosen ([`Fractions`]).
+pub fn analyze_axis_with(g: &Gray, axis_x: bool, min_pitch: f64, fractions: Fractions) -> Option<AxisGrid> {
     let mut p = profile(g, axis_x);
     detrend(&mut p);
     let (pitch_ac, strength) = pitch_from_profile(&p, min_pitch)?;
-    Some(axis_grid(g, axis_x, &p, pitch_ac, strength, min_pitch))
+    Some(axis_grid(g, axis_x, &p, pitch_ac, strength, min_pitch, fractions))
 }
 
 /// Like [`analyze_axis`], but the first pitch and the periodicity strength come from the
@@ -407,10 +445,16 @@ pub fn analyze_axis(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<AxisGrid> 
 /// the autocorrelation of the integral projection. Used when the projection is flat: see
 /// [`superposed_pitch`] for why this happens on twills and satins.
 pub fn analyze_axis_superposed(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<AxisGrid> {
+    analyze_axis_superposed_with(g, axis_x, min_pitch, Fractions::LinearOrLog)
+}
+
+/// [`analyze_axis_superposed`] with the profiles that may reveal a finer yarn pitch chosen
+/// ([`Fractions`]).
+pub fn analyze_axis_superposed_with(g: &Gray, axis_x: bool, min_pitch: f64, fractions: Fractions) -> Option<AxisGrid> {
     let (pitch_ac, strength) = superposed_pitch(g, axis_x, min_pitch)?;
     let mut p = profile(g, axis_x);
     detrend(&mut p);
-    Some(axis_grid(g, axis_x, &p, pitch_ac, strength, min_pitch))
+    Some(axis_grid(g, axis_x, &p, pitch_ac, strength, min_pitch, fractions))
 }
 
 /// Like [`analyze_axis`], but every line is first divided by the running *median* of the
@@ -456,7 +500,7 @@ pub fn analyze_axis_banded(g: &Gray, axis_x: bool, min_pitch: f64) -> Option<(Ax
     }
     let (pitch_ac, strength, window) = best?;
     let (level, flat, p) = at(window);
-    Some((axis_grid(&flat, axis_x, &p, pitch_ac, strength, min_pitch), level))
+    Some((axis_grid(&flat, axis_x, &p, pitch_ac, strength, min_pitch, Fractions::LinearOrLog), level))
 }
 
 /// `g` with every line across `axis_x` (a column for `axis_x`, a row otherwise) divided by
@@ -538,8 +582,16 @@ fn peak_pitch(ac: &[f64], min_pitch: f64) -> Option<(f64, f64)> {
 }
 
 /// Pitch, phase and valleys of one axis from a first pitch `pitch_ac` (see the module docs).
-fn axis_grid(g: &Gray, axis_x: bool, p: &[f64], pitch_ac: f64, strength: f64, min_pitch: f64) -> AxisGrid {
-    let (pitch0, (epitch, ephase, confidence)) = yarn_pitch(g, axis_x, p, pitch_ac, min_pitch);
+fn axis_grid(
+    g: &Gray,
+    axis_x: bool,
+    p: &[f64],
+    pitch_ac: f64,
+    strength: f64,
+    min_pitch: f64,
+    fractions: Fractions,
+) -> AxisGrid {
+    let (pitch0, (epitch, ephase, confidence)) = yarn_pitch(g, axis_x, p, pitch_ac, min_pitch, fractions);
     let vals = valleys(p, pitch0);
     let (vpitch, vphase) = fit_lattice(&vals, pitch0);
     let (pitch, phase) = if confidence < MIN_EDGE_CONFIDENCE {
