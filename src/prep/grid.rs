@@ -348,7 +348,7 @@ fn yarn_pitch(
 /// The integral projection of the log luminance `log(g + ε)` along `axis_x` (as [`profile`]),
 /// detrended, with ε = 2 % of the image mean as in [`edge_energy`] (dark gaps and sensor noise must
 /// not dominate the log). A yarn boundary is a *relative* drop of brightness, the same in the log
-/// whatever the yarn's own brightness; see [`yarn_pitch`] for where it matters.
+/// whatever the yarn's own brightness; see `yarn_pitch` (and [`Fractions`]) for where it matters.
 pub fn log_profile(g: &Gray, axis_x: bool) -> Vec<f64> {
     let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
     let eps = (0.02 * mean).max(1e-6);
@@ -404,7 +404,7 @@ fn fine_class_spread(p: &[f64], q: f64, phase: f64, k: usize) -> f64 {
     between / sd
 }
 
-/// Which profiles may show [`yarn_pitch`] that a whole fraction of the autocorrelation's pitch is
+/// Which profiles may show `yarn_pitch` that a whole fraction of the autocorrelation's pitch is
 /// the yarn pitch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Fractions {
