@@ -363,3 +363,18 @@ fn the_cells_of_hairy_twill_photos_read_as_twills() {
         assert!(r.margin.iter().all(|&m| m > 0.0), "{name}: {:?}", r.margin);
     }
 }
+
+/// A warp-faced satin 5 rendered by another renderer (Mitsuba 3, principled material, the
+/// four-light rig over black; `datagen/mitsuba/make_set.py --seed 1717`, scene 10, the central
+/// 128² of its 256² render, in `tests/data/`): warps 10.2 px apart whose column profile repeats
+/// every half warp (correlation 0.83 at 5.1 px), while the edges repeat at 10.2 px only (edge
+/// fundamental 0.315 there against 0.055 at 5.1 px). Preparation took every warp for two and gave a
+/// 5×10 grid; the yarn boundaries are where the edges are (`grid::edges_at_a_multiple`).
+#[test]
+fn a_satin_whose_profile_repeats_every_half_warp_gets_its_warp_pitch() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/mitsuba_satin5_warp_faced.png");
+    let img = Image::load(&path, 32).unwrap();
+    let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
+    assert_eq!((p.n_e, p.n_a), (5, 5), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    assert!((p.pitch_x - 10.2).abs() < 0.5 && (p.pitch_y - 10.2).abs() < 0.5, "pitch {}×{} px", p.pitch_x, p.pitch_y);
+}

@@ -267,8 +267,9 @@ pub const MAX_FINE_CLASS_SPREAD: f64 = 0.35;
 /// finer lattice taken from the edges alone (a pitch measured over ≥ 4 repeats is good to ≈ 1 %).
 pub const FINE_DIVIDES_TOL: f64 = 0.015;
 
-/// The yarn pitch among `pitch_ac` (the autocorrelation's first strong peak) and its whole
-/// fractions `pitch_ac / k`, with its [`edge_grid`] estimate. The intensity profile of paired yarns
+/// The yarn pitch among `pitch_ac` (the autocorrelation's first strong peak, or the multiple of it
+/// that [`edges_at_a_multiple`] finds the edges at) and its whole fractions `pitch_ac / k`, with its
+/// [`edge_grid`] estimate. The intensity profile of paired yarns
 /// (basket), long floats or a two-colour random pattern repeats best at a multiple of the yarn
 /// pitch, but every yarn boundary makes edges: a fraction is taken when its edge fundamental is at
 /// least 0.6 of the one at `pitch_ac` and the profile's autocorrelation has a peak ≥ 0.25 within
@@ -294,8 +295,8 @@ fn yarn_pitch(
     min_pitch: f64,
     fractions: Fractions,
 ) -> (f64, (f64, f64, f64)) {
-    let base = edge_grid(g, axis_x, pitch_ac);
     let ac = autocorr(p, p.len() / 2);
+    let (pitch_ac, base) = edges_at_a_multiple(g, axis_x, &ac, pitch_ac);
     // Without the log rule the log profile's autocorrelation is empty, so it has no peak.
     let lac = match fractions {
         Fractions::LinearOrLog => autocorr(&log_profile(g, axis_x), p.len() / 2),
@@ -343,6 +344,44 @@ fn yarn_pitch(
         }
     }
     best
+}
+
+/// Smallest factor by which the edge lattice may be coarser than the profile's first pitch
+/// ([`edges_at_a_multiple`]): its edge fundamental must be this many times the one at that pitch.
+pub const MULTIPLE_EDGE_GAIN: f64 = 3.0;
+
+/// The profile's first pitch `pitch_ac`, or a whole multiple `m·pitch_ac` (`m` = 2, 3) where the
+/// yarn boundaries are: with its [`edge_grid`] estimate.
+///
+/// Why: a profile can repeat at a fraction of the yarn pitch when each yarn casts two bumps of
+/// brightness — a specular stripe on either flank of a glossy tube, two plies, or the crossings
+/// of the other family seen at every half yarn (a warp-faced satin 5 of a Mitsuba render: warps
+/// of 10.2 px, the column profile's first strong peak at 5.1 px, correlation 0.83). Every yarn
+/// boundary is an edge, so the edge energy repeats at the yarn pitch; at a true pitch `p` it has
+/// no fundamental at `2p` or `3p` (only harmonics of `p`), while at a half-yarn lag its
+/// fundamental is weak (0.055 there against 0.315 at 10.2 px). So where the edges do not confirm
+/// `pitch_ac` (confidence below [`MIN_EDGE_CONFIDENCE`]) and a multiple at which the profile also
+/// repeats (autocorrelation peak ≥ 0.25) has an edge fundamental [`MULTIPLE_EDGE_GAIN`] times
+/// stronger and above that floor, the multiple is the yarn pitch. The smallest such multiple wins.
+fn edges_at_a_multiple(g: &Gray, axis_x: bool, ac: &[f64], pitch_ac: f64) -> (f64, (f64, f64, f64)) {
+    let base = edge_grid(g, axis_x, pitch_ac);
+    if base.2 >= MIN_EDGE_CONFIDENCE {
+        return (pitch_ac, base);
+    }
+    for m in 2..=3 {
+        let cand = pitch_ac * m as f64;
+        let (lo, hi) =
+            ((0.88 * cand).floor() as usize, ((1.12 * cand).ceil() as usize).min(ac.len().saturating_sub(2)));
+        let peak = (lo.max(1)..=hi)
+            .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
+            .map(|d| ac[d])
+            .fold(f64::MIN, f64::max);
+        let eg = edge_grid(g, axis_x, cand);
+        if peak >= 0.25 && eg.2 >= MIN_EDGE_CONFIDENCE && eg.2 >= MULTIPLE_EDGE_GAIN * base.2 {
+            return (eg.0, eg);
+        }
+    }
+    (pitch_ac, base)
 }
 
 /// The integral projection of the log luminance `log(g + ε)` along `axis_x` (as [`profile`]),
