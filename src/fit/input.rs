@@ -274,18 +274,19 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, f
 
 /// Environment variable which, when set, makes [`cue_phase`] print its cues and its decision on
 /// standard error (one line a fit: the survey of the phase rules over a set of images).
-pub const TRACE_PHASE_VAR: &str = "WOVEN_TRACE_PHASE";
+pub(crate) const TRACE_PHASE_VAR: &str = "WOVEN_TRACE_PHASE";
 
 /// Least spread of the cells' chromaticities ([`cell_chroma_spread`]) at the phase
 /// [`cue_phase`]'s step 5 moves an axis to: the variance of two equal groups of cells whose
 /// chromaticities lie `2·√0.001 ≈ 0.063` apart (a plainly visible difference of hue, as between
 /// the violet and green of a two-colour plain; grey yarns on a white background lie 0 apart).
-/// Below it the cells do not differ by yarn colour and step 5 keeps the phase: on the prepared
-/// real photos the spread stays at or below 0.0008 at every phase tried, cloths of one colour
-/// whose cells differ only in brightness (the two mirror-image kinds of corner of a plain weave
-/// under a slanting light, which a spread of plain colour values took for families, moving
-/// FabricNET W013, W078, W081 back off the boundaries step 4 had found); the two-colour renders
-/// of the fresh Mitsuba set read 0.0013–0.038.
+/// Below it the cells do not differ by yarn colour and step 5 keeps the phase: on the 20
+/// prepared real photos with an open axis the spread stays at or below 0.0008 at every phase
+/// tried but on two with coloured families (FabricNET W022, W025: 0.03–0.04, largest at their
+/// own phase), cloths of one colour whose cells differ only in brightness (the two mirror-image
+/// kinds of corner of a plain weave under a slanting light, which a spread of sRGB values took
+/// for families, moving W013, W078 and W081 back off the boundaries step 4 had found); the
+/// two-colour renders of the fresh Mitsuba set with an open axis read 0.0013–0.038.
 const FAMILY_MIN_SPREAD: f32 = 1e-3;
 
 /// How many times the chromaticity spread here ([`cell_chroma_spread`]) it must reach half a
