@@ -166,11 +166,34 @@ pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, 
 ///    and a render's silhouettes match a photo's highlight edges half a cell away. On a crop left
 ///    on its yarn centres, the fit drives the radius of that family to its lower bound, so that
 ///    the gap between thin yarns lands where the photo is dark (FabricNET W012: `r_a` 1.00, crop
-///    21.1 dB; put back on its boundaries: `r_a` 2.20, 22.9 dB; docs/benchmarks.md, session 16).
+///    21.1 dB; put back on its boundaries: `r_a` 2.20, 22.9 dB; docs/benchmarks.md, session 16);
+/// 5. the axes the edges leave open (placed by steps 2–4) move by half a cell, one or both,
+///    where the cells there clearly hold one yarn family each and here do not: the spread of
+///    the cells' chromaticities ([`cell_chroma_spread`]) is at least [`FAMILY_MIN_SPREAD`]
+///    there and [`FAMILY_CLEAR_RATIO`] times the spread here (both axes
+///    together too: a plain weave framed half a cell off along both shows no family along
+///    either alone). Steps 2 and 4 read bright spots, and cannot
+///    tell a hole (the background through the gap, at a cell corner) from a crown (a yarn's top,
+///    at a cell centre) or a specular spot on it: a two-colour twill over a white background,
+///    whose white holes make its boundaries bright under a front light, was moved off them by
+///    step 4 (fresh Mitsuba scene 10: exact, 22.6 dB → wrong, 14.4 dB), and the highlights on the
+///    crowns of a glossy plain weave under an area light were taken for holes by step 2 (scene 06,
+///    x half a cell off, 16.9 dB, both families one muddy colour). Holes and spots add alike to
+///    every cell at both phases; the yarn colours do not. A cloth of one colour gives no evidence
+///    and keeps the phase of steps 1–4.
+///
+/// With the environment variable [`TRACE_PHASE_VAR`] set, the cues and the decision are printed
+/// on standard error.
 pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, front_lit: bool) -> (i32, i32) {
     let ((bx, by), (sx, sy)) = boundary_phase(image, c);
     let strong = (sx >= BOUNDARY_MIN_STRENGTH, sy >= BOUNDARY_MIN_STRENGTH);
+    let trace = std::env::var_os(TRACE_PHASE_VAR).is_some();
     if strong.0 && strong.1 {
+        if trace {
+            eprintln!(
+                "cue_phase: c={c} edges ({bx}, {by}) strength ({sx:.3}, {sy:.3}) settled by edges -> ({bx}, {by})"
+            );
+        }
         return (bx, by);
     }
     let ci = c.max(1) as i32;
@@ -179,7 +202,8 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, f
         d.min(ci - d)
     };
     // Compact spots at the corners, agreeing with the edges on every axis the edges settle.
-    let holes = hole_phase(image, c).filter(|_| use_holes).filter(|(h, _)| {
+    let spots = hole_phase(image, c);
+    let holes = spots.filter(|_| use_holes).filter(|(h, _)| {
         let agree = [(strong.0, h.0, bx), (strong.1, h.1, by)];
         agree.iter().filter(|a| a.0).all(|&(_, h, b)| 4 * apart(h, b) <= ci)
             && corner_reach(image, c, *h, SPOT_REACH) <= MAX_HOLE_REACH
@@ -194,25 +218,127 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, f
         (r >= HOLE_MIN_CONCENTRATION).then_some(h)
     };
     let settled = (settle(0), settle(1));
-    if let (Some(x), Some(y)) = settled {
-        return (x, y);
+    let half = |v: i32| (v + ci / 2 + ci / 2).rem_euclid(ci) - ci / 2;
+    let mut contrast = None;
+    let mut phase = if let (Some(x), Some(y)) = settled {
+        (x, y)
+    } else {
+        // Step 3 places only the axes left open, the others held where they are settled.
+        let open = cell_phase_given(image, model, c, settled).0;
+        let mut phase = (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1));
+        // Step 4: on a front-lit picture, an open axis whose boundaries came out brighter than
+        // its yarn centres is half a cell off.
+        if front_lit {
+            let k = boundary_luma_contrast(image, c, phase);
+            contrast = Some(k);
+            if settled.0.is_none() && k.0 > BOUNDARY_LUMA_FLIP {
+                phase.0 = half(phase.0);
+            }
+            if settled.1.is_none() && k.1 > BOUNDARY_LUMA_FLIP {
+                phase.1 = half(phase.1);
+            }
+        }
+        phase
+    };
+    let before = phase;
+    // Step 5: the axes the edges leave open go half a cell over where the cells clearly hold one
+    // yarn family each there and not here. Both open axes are tried together: a plain weave
+    // framed half a cell off along both shows no family along either one alone.
+    let open = [!strong.0, !strong.1];
+    let here = cell_chroma_spread(image, c, phase);
+    let mut best = (phase, here);
+    for (mx, my) in [(true, false), (false, true), (true, true)] {
+        if (mx && !open[0]) || (my && !open[1]) {
+            continue;
+        }
+        let alt = (if mx { half(phase.0) } else { phase.0 }, if my { half(phase.1) } else { phase.1 });
+        let share = cell_chroma_spread(image, c, alt);
+        if share > best.1 {
+            best = (alt, share);
+        }
     }
-    // Step 3 places only the axes left open, the others held where they are settled.
-    let open = cell_phase_given(image, model, c, settled).0;
-    let mut phase = (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1));
-    // Step 4: on a front-lit picture, an open axis whose boundaries came out brighter than its
-    // yarn centres is half a cell off.
-    if front_lit {
-        let contrast = boundary_luma_contrast(image, c, phase);
-        let half = |v: i32| (v + ci / 2 + ci / 2).rem_euclid(ci) - ci / 2;
-        if settled.0.is_none() && contrast.0 > BOUNDARY_LUMA_FLIP {
-            phase.0 = half(phase.0);
-        }
-        if settled.1.is_none() && contrast.1 > BOUNDARY_LUMA_FLIP {
-            phase.1 = half(phase.1);
-        }
+    if best.1 >= FAMILY_MIN_SPREAD && best.1 >= FAMILY_CLEAR_RATIO * here {
+        phase = best.0;
+    }
+    if trace {
+        let reach = spots.map(|(h, _)| corner_reach(image, c, h, SPOT_REACH));
+        eprintln!(
+            "cue_phase: c={c} edges ({bx}, {by}) strength ({sx:.3}, {sy:.3}) spots {spots:?} reach {reach:?} \
+             use_holes {use_holes} settled {settled:?} front_lit {front_lit} contrast {contrast:?} \
+             steps 1-4 -> {before:?}; chroma spread {here:.2e}, best {:.2e} at {:?} -> {phase:?}",
+            best.1, best.0
+        );
     }
     phase
+}
+
+/// Environment variable which, when set, makes [`cue_phase`] print its cues and its decision on
+/// standard error (one line a fit: the survey of the phase rules over a set of images).
+pub(crate) const TRACE_PHASE_VAR: &str = "WOVEN_TRACE_PHASE";
+
+/// Least spread of the cells' chromaticities ([`cell_chroma_spread`]) at the phase
+/// [`cue_phase`]'s step 5 moves an axis to: the variance of two equal groups of cells whose
+/// chromaticities lie `2·√0.001 ≈ 0.063` apart (a plainly visible difference of hue, as between
+/// the violet and green of a two-colour plain; grey yarns on a white background lie 0 apart).
+/// Below it the cells do not differ by yarn colour and step 5 keeps the phase: on the 20
+/// prepared real photos with an open axis the spread stays at or below 0.0008 at every phase
+/// tried but on two with coloured families (FabricNET W022, W025: 0.03–0.04, largest at their
+/// own phase), cloths of one colour whose cells differ only in brightness (the two mirror-image
+/// kinds of corner of a plain weave under a slanting light, which a spread of sRGB values took
+/// for families, moving W013, W078 and W081 back off the boundaries step 4 had found); the
+/// two-colour renders of the fresh Mitsuba set with an open axis read 0.0013–0.038.
+const FAMILY_MIN_SPREAD: f32 = 1e-3;
+
+/// How many times the chromaticity spread here ([`cell_chroma_spread`]) it must reach half a
+/// cell over for [`cue_phase`]'s step 5 to move an axis there. Framed half a cell off along one
+/// axis, every cell averages two neighbouring cells' tops, which leaves about `(1 + ρ)/2` of the
+/// spread (`ρ` the correlation of neighbouring cells' families): 1/2 for a 2/2 twill (ρ = 0),
+/// 3/8 for a satin 5, 1/4 for a 2/1 twill, none for a plain weave. 1.5, between no evidence (1)
+/// and the uncorrelated case (2), leaves room for blur and for holes that pale every cell alike.
+const FAMILY_CLEAR_RATIO: f32 = 1.5;
+
+/// How much the cells of `image` (`c`-pixel cells started at the shift `(dx, dy)`: pixel
+/// `(x, y)` lies in cell `((x − dx)/c, (y − dy)/c)`) differ in colour: the variance over the
+/// cells of the chromaticity `m / (m_r + m_g + m_b)` of each cell's mean linear colour `m` (the
+/// sum of the three components' variances; 0 when every cell has the same chromaticity). Framed
+/// on its yarn boundaries, each cell of a weave shows one yarn on top, and cells of two differently
+/// coloured families differ; framed half a cell off, each cell mixes two or four crossings
+/// (linearly: light adds) and their chromaticities move together. A hole (the background through
+/// the gap at a cell corner) or a specular spot on a crown adds alike to every cell at either
+/// phase (a quarter hole at each corner, or one whole in the middle; the spot in every cell of
+/// its family), so neither pulls this cue the way it pulls the edges, the holes' lattice or the
+/// luminance fold. A chromaticity does not change with brightness, so a cloth of one colour
+/// gives about 0 at every phase however its cells' shading differs: no evidence.
+pub(crate) fn cell_chroma_spread(image: &Image, c: u32, (dx, dy): (i32, i32)) -> f32 {
+    let (w, h) = (image.width as i32, image.height as i32);
+    let ci = c.max(1) as i32;
+    let (nx, ny) = ((w / ci).max(1), (h / ci).max(1));
+    let mut sums = vec![[0.0f64; 3]; (nx * ny) as usize];
+    for y in 0..h {
+        for x in 0..w {
+            let p = image.get(x as u32, y as u32);
+            let cell =
+                (((y - dy).rem_euclid(h) / ci).min(ny - 1) * nx + ((x - dx).rem_euclid(w) / ci).min(nx - 1)) as usize;
+            for ch in 0..3 {
+                sums[cell][ch] += p[ch].max(0.0) as f64;
+            }
+        }
+    }
+    let chroma: Vec<[f64; 3]> = sums
+        .iter()
+        .filter(|m| m.iter().sum::<f64>() > 0.0)
+        .map(|m| {
+            let t = m.iter().sum::<f64>();
+            m.map(|v| v / t)
+        })
+        .collect();
+    if chroma.len() < 2 {
+        return 0.0;
+    }
+    let n = chroma.len() as f64;
+    let mean = [0, 1, 2].map(|ch| chroma.iter().map(|q| q[ch]).sum::<f64>() / n);
+    let var = chroma.iter().map(|q| (0..3).map(|ch| (q[ch] - mean[ch]).powi(2)).sum::<f64>()).sum::<f64>() / n;
+    var as f32
 }
 
 /// Least [`boundary_luma_contrast`] (boundaries brighter than the yarn centres, as a fraction of
@@ -604,6 +730,172 @@ mod tests {
         // A crop the fold put on the boundaries stays there.
         let (dx, dy) = cue_phase(&shift_periodic(&sharp, 5, -3), &sharp, c, false, true);
         assert!(off(5 + dx).abs() <= 1 && off(-3 + dy).abs() <= 1, "({dx}, {dy})");
+    }
+
+    /// A weave painted as smooth tubes, `c` px per cell: `pattern` rows (1 = warp on top), yarns
+    /// `r` cells wide on either side of their axis, linear colours `warp` and `weft` shaded across
+    /// the yarn by `shade(d)` (`d` the distance from the yarn's axis over `r`), the background
+    /// `bg` where neither yarn covers (the holes at the cell corners), a specular spot of peak
+    /// `spot.0` and σ `spot.1` px added at each crown centre, blurred periodically by `blur` px
+    /// (3 × 3 repeats blurred, the middle one kept).
+    #[allow(clippy::too_many_arguments)]
+    fn painted_weave(
+        pattern: &[&[u8]],
+        c: u32,
+        r: f32,
+        (warp, weft, bg): ([f32; 3], [f32; 3], [f32; 3]),
+        shade: &dyn Fn(f32) -> f32,
+        spot: (f32, f32),
+        blur: f32,
+    ) -> Image {
+        let (n_e, n_a) = (pattern.len() as u32, pattern[0].len() as u32);
+        let (w, h) = (3 * n_a * c, 3 * n_e * c);
+        let rc = r * c as f32;
+        let peak = |a: f32, b: f32| spot.0 * (-(a * a + b * b) / (2.0 * spot.1 * spot.1)).exp();
+        let mut data = Vec::with_capacity((w * h) as usize);
+        for y in 0..h {
+            for x in 0..w {
+                let (i, j) = ((y / c) % n_e, (x / c) % n_a);
+                let dx = (x % c) as f32 + 0.5 - 0.5 * c as f32;
+                let dy = (y % c) as f32 + 0.5 - 0.5 * c as f32;
+                let (on_warp, on_weft) = (dx.abs() < rc, dy.abs() < rc);
+                let warp_on_top = pattern[i as usize][j as usize] == 1;
+                data.push(if on_warp && (warp_on_top || !on_weft) {
+                    let s = if warp_on_top { peak(dx, dy) } else { 0.0 };
+                    warp.map(|v| v * shade(dx.abs() / rc) + s)
+                } else if on_weft {
+                    let s = if warp_on_top { 0.0 } else { peak(dx, dy) };
+                    weft.map(|v| v * shade(dy.abs() / rc) + s)
+                } else {
+                    bg
+                });
+            }
+        }
+        let big = Image::from_rgb32f(&crate::prep::image_ops::blur_rgb(&Image::new(w, h, data).to_rgb32f(), blur));
+        big.crop(n_a * c, n_e * c, n_a * c, n_e * c)
+    }
+
+    /// A 2/2 twill of thin pink and dark blue yarns over a bright grey background, under a front
+    /// light (the tubes brightest along their tops), as the fresh Mitsuba scene 10 shows it (its
+    /// pink and dark red differ less: chromaticity spread 0.0022 against 0.0014 half a cell off):
+    /// the background through the gaps makes large bright holes at the cell corners.
+    fn twill_over_bright_holes(c: u32) -> Image {
+        let twill: [&[u8]; 4] = [&[1, 1, 0, 0], &[1, 0, 0, 1], &[0, 0, 1, 1], &[0, 1, 1, 0]];
+        let colours = ([0.25, 0.02, 0.1], [0.01, 0.02, 0.08], [0.35; 3]);
+        painted_weave(&twill, c, 0.33, colours, &|d| 0.3 + 0.7 * (1.0 - d * d).max(0.0).sqrt(), (0.0, 1.0), 2.0)
+    }
+
+    #[test]
+    fn bright_holes_at_the_corners_do_not_move_a_two_colour_twill_off_its_boundaries_under_a_front_light() {
+        use crate::fit::target::shift_periodic;
+        let c = 16;
+        let sharp = twill_over_bright_holes(c);
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        // The picture's own premises: the edges settle x only; on the boundaries the bright holes
+        // make the boundaries brighter than the yarn centres along y (step 4 would move y half a
+        // cell), and the cells there hold one family each (twice the colour spread half a cell
+        // over).
+        let (_, (ex, ey)) = boundary_phase(&sharp, c);
+        assert!(ex >= BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
+        let (_, ky) = boundary_luma_contrast(&sharp, c, (0, 0));
+        assert!(ky > BOUNDARY_LUMA_FLIP, "boundary contrast {ky}");
+        let (on, half_y) = (cell_chroma_spread(&sharp, c, (0, 0)), cell_chroma_spread(&sharp, c, (0, 8)));
+        assert!(on >= FAMILY_MIN_SPREAD && on >= FAMILY_CLEAR_RATIO * half_y, "spreads {on} {half_y}");
+        for (sx, sy) in [(0, 0), (5, -3), (-7, 2), (3, 8)] {
+            let img = shift_periodic(&sharp, sx, sy);
+            // The fold (against the picture itself on its boundaries) puts y right; the holes are
+            // vetoed as a front-lit capture's (scene 10: "front-lit for sure").
+            let (dx, dy) = cue_phase(&img, &sharp, c, false, true);
+            assert!(
+                off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                "framed ({sx}, {sy}) off: shifted by ({dx}, {dy})"
+            );
+        }
+    }
+
+    /// A plain weave of soft violet and green tubes, darkest on the cell boundaries, each crown
+    /// with a small specular spot at its top (the fresh Mitsuba scene 06: rough plastic under an
+    /// area light, no back light).
+    fn glossy_plain(c: u32, spot: f32) -> Image {
+        let plain: [&[u8]; 2] = [&[1, 0], &[0, 1]];
+        let colours = ([0.07, 0.03, 0.35], [0.01, 0.06, 0.04], [0.0; 3]);
+        let cos2 = |d: f32| 0.02 + 0.98 * (std::f32::consts::FRAC_PI_2 * d.min(1.0)).cos().powi(2);
+        painted_weave(&plain, c, 0.5, colours, &cos2, (spot, 1.5), 1.0)
+    }
+
+    #[test]
+    fn specular_spots_on_two_colour_crowns_are_not_taken_for_holes() {
+        use crate::fit::target::shift_periodic;
+        let c = 16;
+        let sharp = glossy_plain(c, 0.5);
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        // No axis settled by the edges; the spots pass step 2's test for holes, half a cell off.
+        let (_, (ex, ey)) = boundary_phase(&sharp, c);
+        assert!(ex < BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
+        let ((hx, hy), (rx, ry)) = hole_phase(&sharp, c).unwrap();
+        assert!(off(hx).abs() >= 7 && off(hy).abs() >= 7, "spots at ({hx}, {hy})");
+        assert!(rx >= HOLE_MIN_CONCENTRATION && ry >= HOLE_MIN_CONCENTRATION, "{rx} {ry}");
+        assert!(corner_reach(&sharp, c, (hx, hy), SPOT_REACH) <= MAX_HOLE_REACH);
+        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-7, 2)] {
+            let img = shift_periodic(&sharp, sx, sy);
+            for front_lit in [false, true] {
+                let (dx, dy) = cue_phase(&img, &sharp, c, true, front_lit);
+                assert!(
+                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                    "framed ({sx}, {sy}) off, front-lit {front_lit}: shifted by ({dx}, {dy})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn round_two_colour_crowns_half_a_cell_off_go_back_to_their_boundaries() {
+        use crate::fit::target::shift_periodic;
+        let c = 16;
+        let sharp = glossy_plain(c, 0.0);
+        let half_off = shift_periodic(&sharp, 8, 8);
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-7, 2)] {
+            let img = shift_periodic(&sharp, sx, sy);
+            // The fold forced half a cell off: put back by step 4 under a front light, and by the
+            // cells' colours (step 5) whatever the light.
+            for front_lit in [true, false] {
+                let (dx, dy) = cue_phase(&img, &half_off, c, false, front_lit);
+                assert!(
+                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                    "framed ({sx}, {sy}) off, front-lit {front_lit}: shifted by ({dx}, {dy})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_cells_differ_in_colour_only_on_the_boundaries() {
+        let c = 16;
+        let img = glossy_plain(c, 0.5);
+        let on = cell_chroma_spread(&img, c, (0, 0));
+        assert!(on > 10.0 * FAMILY_MIN_SPREAD, "{on}");
+        // Half a cell off along either axis, every cell holds half of each family.
+        for d in [(8, 0), (0, 8), (8, 8)] {
+            let s = cell_chroma_spread(&img, c, d);
+            assert!(s < 1e-3 * on, "{d:?}: {s}");
+        }
+        // One colour: no spread at any phase, however the cells' brightness differs (grey bumps,
+        // and the same bumps with every other cell darker); none in a flat image.
+        let grey = soft_front_lit_bumps(c);
+        let mut uneven = grey.clone();
+        for (k, p) in uneven.data.iter_mut().enumerate() {
+            let (x, y) = (k as u32 % grey.width, k as u32 / grey.width);
+            if (x / c + y / c) % 2 == 1 {
+                *p = p.map(|v| 0.5 * v);
+            }
+        }
+        for img in [&grey, &uneven] {
+            for d in [(0, 0), (8, 0), (8, 8), (3, -5)] {
+                assert!(cell_chroma_spread(img, c, d) < 1e-9, "{d:?}");
+            }
+        }
+        assert_eq!(cell_chroma_spread(&Image::filled(32, 32, [0.4; 3]), c, (3, 5)), 0.0);
     }
 
     #[test]
