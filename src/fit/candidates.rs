@@ -30,7 +30,7 @@ pub(crate) fn unreduced(p: &WeavePattern) -> WeavePattern {
 /// makes floats of `g` yarns, and the cap keeps the candidates of a large grid few (an 8×8 grid
 /// gets 98 shifted ribs and baskets; groups of 8 on a 16×16 grid would add hundreds, each traced
 /// in the ranking).
-pub const MAX_GROUP: usize = 4;
+pub(crate) const MAX_GROUP: usize = 4;
 
 /// The ribs and baskets ([Watson12]: the derivatives of plain weave) whose repeat divides an
 /// `n_e × n_a` grid, each on its own `2g_e × 2g_a` repeat: plain weave with its wefts woven in
@@ -41,7 +41,7 @@ pub const MAX_GROUP: usize = 4;
 /// preset; a grid of 2×6 offered only plain in its shifts, and the weft rib 3 a Mitsuba render
 /// showed (fresh set, scene 05) was never a candidate and paid four irregular cells in the
 /// finish's criterion (`parsimony`), so a plain won.
-pub fn plain_derivatives(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
+pub(crate) fn plain_derivatives(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
     let groups = |n: usize| (1..=MAX_GROUP).filter(move |g| n.is_multiple_of(2 * g));
     let mut out = Vec::new();
     for g_e in groups(n_e) {
@@ -56,7 +56,7 @@ pub fn plain_derivatives(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
 
 /// The named weaves that fit an `n_e × n_a` grid (tiled when their repeat divides it), in every
 /// cyclic shift, without duplicates: the presets and their 90° rotations, and the ribs and
-/// baskets of [`plain_derivatives`].
+/// baskets of `plain_derivatives`.
 pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
     let mut out: Vec<WeavePattern> = Vec::new();
     let presets = crate::pattern::PRESETS.iter().filter_map(|name| WeavePattern::preset(name).ok());
