@@ -403,8 +403,8 @@ pub fn labelling(p: &WeavePattern, n_e: usize, n_a: usize) -> Vec<bool> {
     (0..n_e).flat_map(|i| (0..n_a).map(move |j| (i, j))).map(|(i, j)| p.get(i, j)).collect()
 }
 
-/// The named weave of the grid (`parsimony::named_weaves`: the presets, every twill and regular
-/// satin, each shift and back) of least cue energy, with that energy; `None` when none fits
+/// The named weave of the grid (`parsimony::named_weaves`: the presets, the ribs and baskets,
+/// every twill and regular satin, each shift and back) of least cue energy, with that energy; `None` when none fits
 /// the grid.
 ///
 /// Why: where the exhaustive reading lands a cell or two off any named weave (a hairy photo's

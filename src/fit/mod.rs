@@ -210,7 +210,8 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // photo's own blur (`preestimate::fit_view`).
     let (ev, view) = if target.prep.is_some() && opts.pre.enabled {
         let (shift, blur) = if st0.cells {
-            reading_view_contest(&ev0, &mut pre, target.blur_px, opts.pre.warmup, &opts.control.stop)
+            let cue = cues.as_ref().map(|c| &c.1.pattern);
+            reading_view_contest(&ev0, &mut pre, cue, target.blur_px, opts.pre.warmup, &opts.control.stop)
         } else {
             preestimate::fit_view(&ev0, &pre.initial, target.blur_px)
         };
@@ -311,7 +312,9 @@ const READING_VIEW_ROUNDS: usize = 2;
 /// The view of the fit (`preestimate::fit_view`: the last pixels of the phase and the photo's
 /// own blur) settled together with the reading of the cloth. The readings: the pre-estimate
 /// `pre.initial`, the named weave nearest to it (`parsimony::PatternChoice::nearest_named`, when
-/// it is a few cells off one) with the same appearance, and the inverted twin of each (pattern
+/// it is a few cells off one) with the same appearance, the cells read from the photo's
+/// structure (`cue`, `cell_cues`: with the appearance of its warm-up where it had one), and the
+/// inverted twin of each (pattern
 /// inverted, the families' colours and radii swapped: `candidates::inverted_twin`; the
 /// pre-estimation's own polished twin where it kept one). Each reading gets its own view, then the
 /// same polish at that view (`READING_VIEW_ROUNDS` radius rounds, `iters` appearance
@@ -330,10 +333,16 @@ const READING_VIEW_ROUNDS: usize = 2;
 /// scored 0.0226, and the same cloth seen through the wrong reading's view (2 px off across the
 /// warps) 0.0366, against the wrong reading's 0.0255. The pre-estimate was one cell off the
 /// named twill, so its own twin was one cell off the right reading too: hence the nearest named
-/// weave and its twin join the contest.
+/// weave and its twin join the contest. The cue reading joins for the same reason: it is read on
+/// preparation's lattice from every copy of the repeat, not through the view, and the warm-up
+/// compared it through the crop's phase only. On the fresh Mitsuba satin 8 (scene 12) the cues
+/// read the satin exactly, but the crop stood a quarter cell off its yarn boundaries
+/// (`input::align_to_cells`), the warm-up put an irregular pattern first, and the fit ended on a
+/// 4×4 one-raiser (docs/benchmarks.md, session 17).
 fn reading_view_contest(
     ev0: &Evaluator,
     pre: &mut preestimate::PreEstimate,
+    cue: Option<&crate::pattern::WeavePattern>,
     blur0: f32,
     iters: usize,
     stop: &std::sync::atomic::AtomicBool,
@@ -345,6 +354,11 @@ fn reading_view_contest(
         let mut c = pre.initial.clone();
         c.pattern = named;
         readings.push(c);
+    }
+    // The cells read from the photo's structure, with the appearance it was warmed up with.
+    if let Some(p) = cue.filter(|p| readings.iter().all(|r| r.pattern != **p)) {
+        let warmed = pre.warmed.iter().find(|c| c.pattern == *p).cloned();
+        readings.push(warmed.unwrap_or_else(|| ClothParams { pattern: p.clone(), ..pre.initial.clone() }));
     }
     for k in 0..readings.len() {
         let inverse = readings[k].pattern.inverted();
@@ -438,13 +452,45 @@ mod tests {
         let twin = candidates::inverted_twin(&truth);
         let mut pre =
             preestimate::PreEstimate { starts: vec![twin.clone()], warmed: vec![twin.clone()], initial: twin.clone() };
-        let (shift, _) = reading_view_contest(&ev0, &mut pre, 0.0, 6, &stop);
+        let (shift, _) = reading_view_contest(&ev0, &mut pre, None, 0.0, 6, &stop);
         assert_eq!(pre.initial.pattern, truth.pattern, "kept {}", pre.initial.pattern);
         assert_eq!(pre.starts[0].pattern, truth.pattern);
         assert_eq!(shift, (-2, 0));
         assert!(pre.warmed.iter().any(|w| w.pattern == twin.pattern));
         let mut kept = preestimate::PreEstimate { starts: vec![truth.clone()], warmed: vec![], initial: truth.clone() };
-        assert_eq!(reading_view_contest(&ev0, &mut kept, 0.0, 6, &stop).0, (-2, 0));
+        assert_eq!(reading_view_contest(&ev0, &mut kept, None, 0.0, 6, &stop).0, (-2, 0));
         assert_eq!(kept.initial, truth);
+    }
+
+    /// The same shifted twill, a pre-estimate on a wrong weave far from it (a 4×4 basket, whose
+    /// nearest named weave is itself and whose twin is a shift of it), and the cells read from
+    /// the photo giving the truth: the cue reading gets its own view and the first start. Without
+    /// the cue (the contest before session 17) the wrong start is kept.
+    #[test]
+    fn the_cue_reading_joins_the_view_contest_and_wins_with_its_own_view() {
+        let mut truth = demo_cloth();
+        truth.pattern = WeavePattern::parse("1100/1001/0011/0110").unwrap();
+        (truth.r_e, truth.r_a) = (4.8, 3.0);
+        truth.appearance.r_b_e = [0.05; 3];
+        truth.appearance.s_b_e = [0.05; 3];
+        truth.appearance.r_b_a = [0.8; 3];
+        truth.appearance.s_b_a = [0.8; 3];
+        let c = 8;
+        let scene = fit_scene(4, 4, c, 2, 3, &LightRig::default_rig());
+        let own = Evaluator::of_own_render(&truth, scene.clone());
+        let ev0 = own.sibling(scene, target::shift_periodic(own.target(), 2, 0), 2);
+        let stop = AtomicBool::new(false);
+        let mut wrong = truth.clone();
+        wrong.pattern = WeavePattern::parse("1100/1100/0011/0011").unwrap();
+        let fresh = || preestimate::PreEstimate { starts: vec![wrong.clone()], warmed: vec![], initial: wrong.clone() };
+        let mut without = fresh();
+        reading_view_contest(&ev0, &mut without, None, 0.0, 6, &stop);
+        assert_ne!(without.initial.pattern, truth.pattern);
+        let mut with = fresh();
+        let (shift, _) = reading_view_contest(&ev0, &mut with, Some(&truth.pattern), 0.0, 6, &stop);
+        assert_eq!(with.initial.pattern, truth.pattern, "kept {}", with.initial.pattern);
+        assert_eq!(with.starts[0].pattern, truth.pattern);
+        assert_eq!(shift, (-2, 0));
+        assert!(with.warmed.iter().any(|w| w.pattern == wrong.pattern));
     }
 }
