@@ -430,13 +430,9 @@ mod tests {
     use crate::scene::LightRig;
     use std::sync::atomic::AtomicBool;
 
-    /// A two-colour 2/2 twill of thin light warps over thick dark wefts, its one-repeat render
-    /// shifted by two pixels across the warps (a phase the view must take back), and a
-    /// pre-estimate that is the inverted twin: the contest gives each reading its own view and
-    /// hands the first start to the truth, with the view that undoes the shift; the twin becomes
-    /// a warmed rival. Started from the truth, the contest keeps it.
-    #[test]
-    fn the_reading_view_contest_turns_a_twin_start_back_to_the_truth() {
+    /// A two-colour 2/2 twill of thin light warps over thick dark wefts and an evaluator of its
+    /// one-repeat render (8 px per cell) shifted by two pixels across the warps.
+    fn shifted_two_colour_twill() -> (ClothParams, Evaluator) {
         let mut truth = demo_cloth();
         truth.pattern = WeavePattern::parse("1100/1001/0011/0110").unwrap();
         (truth.r_e, truth.r_a) = (4.8, 3.0);
@@ -448,6 +444,17 @@ mod tests {
         let scene = fit_scene(4, 4, c, 2, 3, &LightRig::default_rig());
         let own = Evaluator::of_own_render(&truth, scene.clone());
         let ev0 = own.sibling(scene, target::shift_periodic(own.target(), 2, 0), 2);
+        (truth, ev0)
+    }
+
+    /// A two-colour 2/2 twill of thin light warps over thick dark wefts, its one-repeat render
+    /// shifted by two pixels across the warps (a phase the view must take back), and a
+    /// pre-estimate that is the inverted twin: the contest gives each reading its own view and
+    /// hands the first start to the truth, with the view that undoes the shift; the twin becomes
+    /// a warmed rival. Started from the truth, the contest keeps it.
+    #[test]
+    fn the_reading_view_contest_turns_a_twin_start_back_to_the_truth() {
+        let (truth, ev0) = shifted_two_colour_twill();
         let stop = AtomicBool::new(false);
         let twin = candidates::inverted_twin(&truth);
         let mut pre =
@@ -468,17 +475,7 @@ mod tests {
     /// the cue (the contest before session 17) the wrong start is kept.
     #[test]
     fn the_cue_reading_joins_the_view_contest_and_wins_with_its_own_view() {
-        let mut truth = demo_cloth();
-        truth.pattern = WeavePattern::parse("1100/1001/0011/0110").unwrap();
-        (truth.r_e, truth.r_a) = (4.8, 3.0);
-        truth.appearance.r_b_e = [0.05; 3];
-        truth.appearance.s_b_e = [0.05; 3];
-        truth.appearance.r_b_a = [0.8; 3];
-        truth.appearance.s_b_a = [0.8; 3];
-        let c = 8;
-        let scene = fit_scene(4, 4, c, 2, 3, &LightRig::default_rig());
-        let own = Evaluator::of_own_render(&truth, scene.clone());
-        let ev0 = own.sibling(scene, target::shift_periodic(own.target(), 2, 0), 2);
+        let (truth, ev0) = shifted_two_colour_twill();
         let stop = AtomicBool::new(false);
         let mut wrong = truth.clone();
         wrong.pattern = WeavePattern::parse("1100/1100/0011/0011").unwrap();

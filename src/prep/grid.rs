@@ -346,8 +346,9 @@ fn yarn_pitch(
     best
 }
 
-/// Smallest factor by which the edge lattice may be coarser than the profile's first pitch
-/// ([`edges_at_a_multiple`]): its edge fundamental must be this many times the one at that pitch.
+/// Smallest factor by which the edge lattice may be coarser than the profile's first pitch (the
+/// private `edges_at_a_multiple`): its edge fundamental must be this many times the one at that
+/// pitch.
 pub const MULTIPLE_EDGE_GAIN: f64 = 3.0;
 
 /// The profile's first pitch `pitch_ac`, or a whole multiple `m·pitch_ac` (`m` = 2, 3) where the
