@@ -183,9 +183,7 @@ pub fn fit_lattice(vals: &[f64], pitch0: f64) -> (f64, f64) {
 /// Log-luminance edge energy across `axis_x`: `e[i] = Σ |log(g(i+1)+ε) − log(g(i)+ε)|` over the
 /// other axis (see the module docs); `e[i]` sits at `i + 0.5` in index units.
 pub fn edge_energy(g: &Gray, axis_x: bool) -> Vec<f64> {
-    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
-    // ε keeps dark gaps and sensor noise from dominating the log.
-    let eps = (0.02 * mean).max(1e-6);
+    let eps = log_floor(g);
     let lg: Vec<f64> = g.data.iter().map(|&v| (v as f64 + eps).max(eps).ln()).collect();
     let n = if axis_x { g.w } else { g.h };
     let mut e = vec![0.0f64; n.saturating_sub(1)];
@@ -201,6 +199,13 @@ pub fn edge_energy(g: &Gray, axis_x: bool) -> Vec<f64> {
         }
     }
     e
+}
+
+/// The floor ε of the log luminance `log(g + ε)` of [`edge_energy`] and [`log_profile`]: 2 % of
+/// the image mean (at least 1e-6), which keeps dark gaps and sensor noise from dominating the log.
+fn log_floor(g: &Gray) -> f64 {
+    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
+    (0.02 * mean).max(1e-6)
 }
 
 /// Fundamental of `e` at `pitch` over whole periods: (phase in `[0, pitch)` of its maximum,
@@ -313,18 +318,12 @@ fn yarn_pitch(
         // lag, but only a real repeat brings the correlation back up.
         let (lo, hi) =
             ((0.75 * eg.0).floor() as usize, ((1.25 * eg.0).ceil() as usize).min(ac.len().saturating_sub(2)));
-        let peak_of = |ac: &[f64], lo: usize, hi: usize| {
-            (lo.max(1)..=hi.min(ac.len().saturating_sub(2)))
-                .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
-                .map(|d| ac[d])
-                .fold(f64::MIN, f64::max)
-        };
         // The log profile's peak must also sit where `k` yarns fill the repeat (within ±12 % of
         // `pitch_ac / k`, the edge search's range): its peaks are sharp at the true yarn pitch,
         // and the ±25 % window alone let the neighbouring fractions (a 3×3 basket's 64 px repeat
         // over 7 or 8 yarns) claim the peak of the right one (6 yarns of 10.7 px).
         let (llo, lhi) = ((0.88 * cand).ceil() as usize, (1.12 * cand).floor() as usize);
-        let peak = peak_of(&ac, lo, hi).max(peak_of(&lac, llo.max(lo), lhi.min(hi)));
+        let peak = highest_local_max(&ac, lo, hi).max(highest_local_max(&lac, llo.max(lo), lhi.min(hi)));
         if eg.2 < MIN_EDGE_CONFIDENCE || eg.2 < 0.6 * base.2 {
             continue;
         }
@@ -371,12 +370,7 @@ fn edges_at_a_multiple(g: &Gray, axis_x: bool, ac: &[f64], pitch_ac: f64) -> (f6
     }
     for m in 2..=3 {
         let cand = pitch_ac * m as f64;
-        let (lo, hi) =
-            ((0.88 * cand).floor() as usize, ((1.12 * cand).ceil() as usize).min(ac.len().saturating_sub(2)));
-        let peak = (lo.max(1)..=hi)
-            .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
-            .map(|d| ac[d])
-            .fold(f64::MIN, f64::max);
+        let peak = highest_local_max(ac, (0.88 * cand).floor() as usize, (1.12 * cand).ceil() as usize);
         let eg = edge_grid(g, axis_x, cand);
         if peak >= 0.25 && eg.2 >= MIN_EDGE_CONFIDENCE && eg.2 >= MULTIPLE_EDGE_GAIN * base.2 {
             return (eg.0, eg);
@@ -390,8 +384,7 @@ fn edges_at_a_multiple(g: &Gray, axis_x: bool, ac: &[f64], pitch_ac: f64) -> (f6
 /// not dominate the log). A yarn boundary is a *relative* drop of brightness, the same in the log
 /// whatever the yarn's own brightness; see `yarn_pitch` (and [`Fractions`]) for where it matters.
 pub fn log_profile(g: &Gray, axis_x: bool) -> Vec<f64> {
-    let mean = g.data.iter().map(|&v| v as f64).sum::<f64>() / g.data.len().max(1) as f64;
-    let eps = (0.02 * mean).max(1e-6);
+    let eps = log_floor(g);
     let lg = Gray { w: g.w, h: g.h, data: g.data.iter().map(|&v| ((v as f64).max(0.0) + eps).ln() as f32).collect() };
     let mut p = profile(&lg, axis_x);
     detrend(&mut p);
@@ -406,8 +399,17 @@ fn edge_autocorr_peak(g: &Gray, axis_x: bool, lag: f64) -> f64 {
     let mut e = edge_energy(g, axis_x);
     detrend(&mut e);
     let ac = autocorr(&e, e.len() / 2);
-    let (lo, hi) = ((0.75 * lag).floor() as usize, ((1.25 * lag).ceil() as usize).min(ac.len().saturating_sub(2)));
-    (lo.max(1)..=hi).filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1]).map(|d| ac[d]).fold(f64::MIN, f64::max)
+    highest_local_max(&ac, (0.75 * lag).floor() as usize, (1.25 * lag).ceil() as usize)
+}
+
+/// Highest local maximum of the autocorrelation `ac` at the lags `lo..=hi` (clipped to the lags
+/// that have two neighbours); `f64::MIN` when there is none. A smooth profile correlates at any
+/// short lag; only a real repeat brings the correlation back up to a local maximum.
+fn highest_local_max(ac: &[f64], lo: usize, hi: usize) -> f64 {
+    (lo.max(1)..=hi.min(ac.len().saturating_sub(2)))
+        .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
+        .map(|d| ac[d])
+        .fold(f64::MIN, f64::max)
 }
 
 /// How unlike one another the `k` classes of fine cells of a candidate finer lattice are in mean
@@ -1110,10 +1112,7 @@ mod tests {
         let eg = edge_grid(g, axis_x, coarse / k as f64);
         let ac = autocorr(&p, p.len() / 2);
         let (lo, hi) = ((0.75 * eg.0) as usize, (1.25 * eg.0).ceil() as usize);
-        let peak = (lo.max(1)..=hi)
-            .filter(|&d| ac[d] > ac[d - 1] && ac[d] >= ac[d + 1])
-            .map(|d| ac[d])
-            .fold(f64::MIN, f64::max);
+        let peak = highest_local_max(&ac, lo, hi);
         let edges = eg.2 >= MIN_EDGE_CONFIDENCE && eg.2 >= 0.6 * base && edge_autocorr_peak(g, axis_x, eg.0) >= 0.25;
         (edges && peak < 0.25).then(|| fine_class_spread(&p, eg.0, eg.1, k))
     }
