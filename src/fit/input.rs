@@ -167,20 +167,24 @@ pub(crate) fn align_to_cells(t: &mut FitTarget, model: &Image, c: u32) -> (i32, 
 ///    on its yarn centres, the fit drives the radius of that family to its lower bound, so that
 ///    the gap between thin yarns lands where the photo is dark (FabricNET W012: `r_a` 1.00, crop
 ///    21.1 dB; put back on its boundaries: `r_a` 2.20, 22.9 dB; docs/benchmarks.md, session 16);
-/// 5. the axes the edges leave open (placed by steps 2–4) move by half a cell, one or both,
-///    where the cells there clearly hold one yarn family each and here do not: the spread of
-///    the cells' chromaticities ([`cell_chroma_spread`]) is at least [`FAMILY_MIN_SPREAD`]
-///    there and [`FAMILY_CLEAR_RATIO`] times the spread here (both axes
-///    together too: a plain weave framed half a cell off along both shows no family along
-///    either alone). Steps 2 and 4 read bright spots, and cannot
-///    tell a hole (the background through the gap, at a cell corner) from a crown (a yarn's top,
-///    at a cell centre) or a specular spot on it: a two-colour twill over a white background,
-///    whose white holes make its boundaries bright under a front light, was moved off them by
-///    step 4 (fresh Mitsuba scene 10: exact, 22.6 dB → wrong, 14.4 dB), and the highlights on the
-///    crowns of a glossy plain weave under an area light were taken for holes by step 2 (scene 06,
-///    x half a cell off, 16.9 dB, both families one muddy colour). Holes and spots add alike to
-///    every cell at both phases; the yarn colours do not. A cloth of one colour gives no evidence
-///    and keeps the phase of steps 1–4.
+/// 5. whatever steps 1–4 decided, the crop moves to the shift at which the cells' colours
+///    differ most ([`family_phase`], the spread of the cells' chromaticities,
+///    [`cell_chroma_spread`]) where that spread is at least [`FAMILY_MIN_SPREAD`] and
+///    [`FAMILY_CLEAR_RATIO`] times the spread here: framed on its yarn boundaries, each cell of
+///    a two-colour weave shows one family on top; framed off them, each cell mixes neighbours.
+///    Steps 2 and 4 read bright spots, and cannot tell a hole (the background through the gap,
+///    at a cell corner) from a crown (a yarn's top, at a cell centre) or a specular spot on it:
+///    a two-colour twill over a white background, whose white holes make its boundaries bright
+///    under a front light, was moved off them by step 4 (fresh Mitsuba scene 10: exact, 22.6 dB
+///    → wrong, 14.4 dB), and the highlights on the crowns of a glossy plain weave under an area
+///    light were taken for holes by step 2 (scene 06, x half a cell off, 16.9 dB, both families
+///    one muddy colour). The edges of step 1 are strong yet a quarter of a cell off where the
+///    light falls on the yarns from all sides but unevenly (an environment light: each yarn
+///    bright on one flank and shaded down the other, so the log-luminance gradient gathers on
+///    the shaded flank, not at the boundary; a seed-1818 Mitsuba plain weave of orange and grey
+///    yarns came out with both families brown, 18.7 dB). Holes and spots add alike to every cell
+///    at every phase; the yarn colours do not, and a chromaticity does not change with
+///    brightness, so a cloth of one colour gives no evidence and keeps the phase of steps 1–4.
 ///
 /// With the environment variable [`TRACE_PHASE_VAR`] set, the cues and the decision are printed
 /// on standard error.
@@ -188,75 +192,60 @@ pub(crate) fn cue_phase(image: &Image, model: &Image, c: u32, use_holes: bool, f
     let ((bx, by), (sx, sy)) = boundary_phase(image, c);
     let strong = (sx >= BOUNDARY_MIN_STRENGTH, sy >= BOUNDARY_MIN_STRENGTH);
     let trace = std::env::var_os(TRACE_PHASE_VAR).is_some();
-    if strong.0 && strong.1 {
-        if trace {
-            eprintln!(
-                "cue_phase: c={c} edges ({bx}, {by}) strength ({sx:.3}, {sy:.3}) settled by edges -> ({bx}, {by})"
-            );
-        }
-        return (bx, by);
-    }
     let ci = c.max(1) as i32;
     let apart = |a: i32, b: i32| {
         let d = (a - b).rem_euclid(ci);
         d.min(ci - d)
     };
-    // Compact spots at the corners, agreeing with the edges on every axis the edges settle.
-    let spots = hole_phase(image, c);
-    let holes = spots.filter(|_| use_holes).filter(|(h, _)| {
-        let agree = [(strong.0, h.0, bx), (strong.1, h.1, by)];
-        agree.iter().filter(|a| a.0).all(|&(_, h, b)| 4 * apart(h, b) <= ci)
-            && corner_reach(image, c, *h, SPOT_REACH) <= MAX_HOLE_REACH
-    });
-    // Steps 1 and 2, axis by axis.
-    let settle = |k: usize| -> Option<i32> {
-        if (k == 0 && strong.0) || (k == 1 && strong.1) {
-            return Some(if k == 0 { bx } else { by });
-        }
-        let ((hx, hy), (rx, ry)) = holes?;
-        let (h, r) = if k == 0 { (hx, rx) } else { (hy, ry) };
-        (r >= HOLE_MIN_CONCENTRATION).then_some(h)
-    };
-    let settled = (settle(0), settle(1));
     let half = |v: i32| (v + ci / 2 + ci / 2).rem_euclid(ci) - ci / 2;
+    let mut spots = None;
+    let mut settled = (Some(bx), Some(by));
     let mut contrast = None;
-    let mut phase = if let (Some(x), Some(y)) = settled {
-        (x, y)
-    } else {
-        // Step 3 places only the axes left open, the others held where they are settled.
-        let open = cell_phase_given(image, model, c, settled).0;
-        let mut phase = (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1));
-        // Step 4: on a front-lit picture, an open axis whose boundaries came out brighter than
-        // its yarn centres is half a cell off.
-        if front_lit {
-            let k = boundary_luma_contrast(image, c, phase);
-            contrast = Some(k);
-            if settled.0.is_none() && k.0 > BOUNDARY_LUMA_FLIP {
-                phase.0 = half(phase.0);
+    let mut phase = (bx, by);
+    if !(strong.0 && strong.1) {
+        // Compact spots at the corners, agreeing with the edges on every axis the edges settle.
+        spots = hole_phase(image, c);
+        let holes = spots.filter(|_| use_holes).filter(|(h, _)| {
+            let agree = [(strong.0, h.0, bx), (strong.1, h.1, by)];
+            agree.iter().filter(|a| a.0).all(|&(_, h, b)| 4 * apart(h, b) <= ci)
+                && corner_reach(image, c, *h, SPOT_REACH) <= MAX_HOLE_REACH
+        });
+        // Steps 1 and 2, axis by axis.
+        let settle = |k: usize| -> Option<i32> {
+            if (k == 0 && strong.0) || (k == 1 && strong.1) {
+                return Some(if k == 0 { bx } else { by });
             }
-            if settled.1.is_none() && k.1 > BOUNDARY_LUMA_FLIP {
-                phase.1 = half(phase.1);
+            let ((hx, hy), (rx, ry)) = holes?;
+            let (h, r) = if k == 0 { (hx, rx) } else { (hy, ry) };
+            (r >= HOLE_MIN_CONCENTRATION).then_some(h)
+        };
+        settled = (settle(0), settle(1));
+        phase = if let (Some(x), Some(y)) = settled {
+            (x, y)
+        } else {
+            // Step 3 places only the axes left open, the others held where they are settled.
+            let open = cell_phase_given(image, model, c, settled).0;
+            let mut phase = (settled.0.unwrap_or(open.0), settled.1.unwrap_or(open.1));
+            // Step 4: on a front-lit picture, an open axis whose boundaries came out brighter
+            // than its yarn centres is half a cell off.
+            if front_lit {
+                let k = boundary_luma_contrast(image, c, phase);
+                contrast = Some(k);
+                if settled.0.is_none() && k.0 > BOUNDARY_LUMA_FLIP {
+                    phase.0 = half(phase.0);
+                }
+                if settled.1.is_none() && k.1 > BOUNDARY_LUMA_FLIP {
+                    phase.1 = half(phase.1);
+                }
             }
-        }
-        phase
-    };
-    let before = phase;
-    // Step 5: the axes the edges leave open go half a cell over where the cells clearly hold one
-    // yarn family each there and not here. Both open axes are tried together: a plain weave
-    // framed half a cell off along both shows no family along either one alone.
-    let open = [!strong.0, !strong.1];
-    let here = cell_chroma_spread(image, c, phase);
-    let mut best = (phase, here);
-    for (mx, my) in [(true, false), (false, true), (true, true)] {
-        if (mx && !open[0]) || (my && !open[1]) {
-            continue;
-        }
-        let alt = (if mx { half(phase.0) } else { phase.0 }, if my { half(phase.1) } else { phase.1 });
-        let share = cell_chroma_spread(image, c, alt);
-        if share > best.1 {
-            best = (alt, share);
-        }
+            phase
+        };
     }
+    let before = phase;
+    // Step 5: where the cells' colours tell the yarn families apart, the shift at which they
+    // differ most, when it is clearly more than here.
+    let here = cell_chroma_spread(image, c, phase);
+    let best = family_phase(image, c).unwrap_or((phase, here));
     if best.1 >= FAMILY_MIN_SPREAD && best.1 >= FAMILY_CLEAR_RATIO * here {
         phase = best.0;
     }
@@ -339,6 +328,34 @@ pub(crate) fn cell_chroma_spread(image: &Image, c: u32, (dx, dy): (i32, i32)) ->
     let mean = [0, 1, 2].map(|ch| chroma.iter().map(|q| q[ch]).sum::<f64>() / n);
     let var = chroma.iter().map(|q| (0..3).map(|ch| (q[ch] - mean[ch]).powi(2)).sum::<f64>()).sum::<f64>() / n;
     var as f32
+}
+
+/// The shift `(dx, dy)` (each in `[−c/2, c/2)`) at which the cells of `image` (`c`-pixel cells)
+/// differ most in colour ([`cell_chroma_spread`]), and the spread there; `None` for an empty
+/// image. Every shift of the cell is tried (one pass over the image each), so the answer does
+/// not depend on where the other cues put the crop: a phase a quarter of a cell off, which no
+/// half-cell move repairs, is found as readily as one half a cell off. Shifts are ranked by the
+/// spread summed over their 3 × 3 neighbourhood (cyclic): where the gaps between thin yarns are
+/// dark, moving a cell boundary through a gap hardly changes the cells' colours, and the spread
+/// is a plateau whose middle, not its first pixel, is the boundary.
+pub(crate) fn family_phase(image: &Image, c: u32) -> Option<((i32, i32), f32)> {
+    if image.width == 0 || image.height == 0 {
+        return None;
+    }
+    let ci = c.max(1) as i32;
+    let at = |i: i32| i - ci / 2;
+    let spread: Vec<f32> = (0..ci * ci).map(|k| cell_chroma_spread(image, c, (at(k % ci), at(k / ci)))).collect();
+    let s = |i: i32, j: i32| spread[(j.rem_euclid(ci) * ci + i.rem_euclid(ci)) as usize];
+    let mut best: Option<((i32, i32), f32)> = None;
+    for j in 0..ci {
+        for i in 0..ci {
+            let around: f32 = (-1..=1).flat_map(|v| (-1..=1).map(move |u| (u, v))).map(|(u, v)| s(i + u, j + v)).sum();
+            if best.is_none_or(|b| around > b.1) {
+                best = Some(((i, j), around));
+            }
+        }
+    }
+    best.map(|((i, j), _)| ((at(i), at(j)), s(i, j)))
 }
 
 /// Least [`boundary_luma_contrast`] (boundaries brighter than the yarn centres, as a fraction of
@@ -734,7 +751,8 @@ mod tests {
 
     /// A weave painted as smooth tubes, `c` px per cell: `pattern` rows (1 = warp on top), yarns
     /// `r` cells wide on either side of their axis, linear colours `warp` and `weft` shaded across
-    /// the yarn by `shade(d)` (`d` the distance from the yarn's axis over `r`), the background
+    /// the yarn by `shade(d)` (`d` the signed offset from the yarn's axis over `r`, towards +x for
+    /// a warp and +y for a weft), the background
     /// `bg` where neither yarn covers (the holes at the cell corners), a specular spot of peak
     /// `spot.0` and σ `spot.1` px added at each crown centre, blurred periodically by `blur` px
     /// (3 × 3 repeats blurred, the middle one kept).
@@ -762,10 +780,10 @@ mod tests {
                 let warp_on_top = pattern[i as usize][j as usize] == 1;
                 data.push(if on_warp && (warp_on_top || !on_weft) {
                     let s = if warp_on_top { peak(dx, dy) } else { 0.0 };
-                    warp.map(|v| v * shade(dx.abs() / rc) + s)
+                    warp.map(|v| v * shade(dx / rc) + s)
                 } else if on_weft {
                     let s = if warp_on_top { 0.0 } else { peak(dx, dy) };
-                    weft.map(|v| v * shade(dy.abs() / rc) + s)
+                    weft.map(|v| v * shade(dy / rc) + s)
                 } else {
                     bg
                 });
@@ -867,6 +885,59 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A plain weave of orange and grey tubes over a black background, lit from every side but
+    /// unevenly (an environment light, the seed-1818 Mitsuba scene 06): each yarn is brightest
+    /// on its −x / −y flank, where it rises sharply out of the gap, and shades down to the
+    /// darkness of the gap on the other.
+    fn unevenly_lit_plain(c: u32) -> Image {
+        let plain: [&[u8]; 2] = [&[1, 0], &[0, 1]];
+        let colours = ([0.6, 0.24, 0.13], [0.3, 0.3, 0.3], [0.02; 3]);
+        painted_weave(&plain, c, 0.33, colours, &uneven_flank, (0.0, 1.0), 1.0)
+    }
+
+    /// Shading across a yarn under an uneven all-round light: 1 on the lit flank (`d = −1`),
+    /// down to 5 % on the other (`d = 1`).
+    fn uneven_flank(d: f32) -> f32 {
+        0.05 + 0.95 * (0.5 - 0.5 * d.clamp(-1.0, 1.0)).powf(1.5)
+    }
+
+    #[test]
+    fn strong_edges_a_quarter_cell_off_give_way_to_the_cells_colours() {
+        use crate::fit::target::shift_periodic;
+        let c = 16;
+        let sharp = unevenly_lit_plain(c);
+        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
+        // The picture's premise: the edges are strong on both axes (step 1 settles both) but
+        // gather on the shaded flanks, away from the boundaries.
+        let ((bx, by), (ex, ey)) = boundary_phase(&sharp, c);
+        assert!(ex >= BOUNDARY_MIN_STRENGTH && ey >= BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
+        assert!(off(bx).abs().max(off(by).abs()) >= 3, "edges at ({bx}, {by})");
+        let ((fx, fy), _) = family_phase(&sharp, c).unwrap();
+        assert!(off(fx).abs() <= 1 && off(fy).abs() <= 1, "colours at ({fx}, {fy})");
+        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-4, 2)] {
+            let img = shift_periodic(&sharp, sx, sy);
+            for front_lit in [false, true] {
+                let (dx, dy) = cue_phase(&img, &sharp, c, false, front_lit);
+                assert!(
+                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                    "framed ({sx}, {sy}) off, front-lit {front_lit}: shifted by ({dx}, {dy})"
+                );
+            }
+        }
+        // One colour, the same light: no evidence, the edges keep their phase.
+        let grey = painted_weave(
+            &[&[1, 0], &[0, 1]],
+            c,
+            0.33,
+            ([0.3; 3], [0.3; 3], [0.02; 3]),
+            &uneven_flank,
+            (0.0, 1.0),
+            1.0,
+        );
+        let ((gx, gy), _) = boundary_phase(&grey, c);
+        assert_eq!(cue_phase(&grey, &grey, c, false, true), (gx, gy));
     }
 
     #[test]
