@@ -490,6 +490,32 @@ mod tests {
     use super::*;
     use crate::pattern::WeavePattern;
 
+    /// `v` pixels as an offset from the nearest boundary of `c`-pixel cells, in `[−c/2, c/2)`.
+    fn off_boundary(v: i32, c: u32) -> i32 {
+        (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2
+    }
+
+    /// Whether a crop framed `(sx, sy)` off its cell boundaries and then shifted by `(dx, dy)`
+    /// is back on them, to a pixel.
+    fn back_on_boundaries((sx, sy): (i32, i32), (dx, dy): (i32, i32), c: u32) -> bool {
+        off_boundary(sx + dx, c).abs() <= 1 && off_boundary(sy + dy, c).abs() <= 1
+    }
+
+    /// Asserts that `cue_phase` puts `sharp` (a one-repeat picture on its boundaries) back on
+    /// them to a pixel, from four framings and under both captures, `model` as the fold's model.
+    fn assert_reframed(sharp: &Image, model: &Image, c: u32, use_holes: bool) {
+        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-7, 2)] {
+            let img = crate::fit::target::shift_periodic(sharp, sx, sy);
+            for front_lit in [false, true] {
+                let (dx, dy) = cue_phase(&img, model, c, use_holes, front_lit);
+                assert!(
+                    back_on_boundaries((sx, sy), (dx, dy), c),
+                    "framed ({sx}, {sy}) off, front-lit {front_lit}: shifted by ({dx}, {dy})"
+                );
+            }
+        }
+    }
+
     #[test]
     fn small_or_non_finite_inputs_are_refused() {
         let e = check_input(&Image::filled(8, 20, [0.5; 3])).unwrap_err().to_string();
@@ -625,9 +651,8 @@ mod tests {
                 let cue = crate::fit::target::boundary_phase(&t.image, c);
                 let (dx, dy) = align_to_cells(&mut t, &model, c);
                 // Back on the boundaries: the total shift is a whole number of cells (±1 px).
-                let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
                 assert!(
-                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                    back_on_boundaries((sx, sy), (dx, dy), c),
                     "start {pattern}, framed ({sx}, {sy}) off: shifted by ({dx}, {dy}); image cue {cue:?}"
                 );
             }
@@ -656,7 +681,6 @@ mod tests {
         let start = crate::fit::preestimate::default_cloth(crate::fit::default_twill(3, 3));
         let model =
             crate::render::render(&start, &fit_scene(3, 3, c, 8, 3, &crate::scene::LightRig::default_rig()), &ro);
-        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
         let mut fold_missed = 0;
         for (sx, sy) in [(0, 5), (4, -3), (-6, 6), (8, 8)] {
             let img = shift_periodic(&sharp, sx, sy);
@@ -665,15 +689,12 @@ mod tests {
             assert!(ex >= BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
             // The model's fold, which decided y before, misses the boundary.
             let (fold, _) = cell_phase_given(&img, &model, c, (Some(boundary_phase(&img, c).0 .0), None));
-            if off(sy + fold.1).abs() >= 2 {
+            if off_boundary(sy + fold.1, c).abs() >= 2 {
                 fold_missed += 1;
             }
             // The holes put it back: compact spots, agreeing with the edges on x.
             let (dx, dy) = cue_phase(&img, &model, c, true, false);
-            assert!(
-                off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
-                "framed ({sx}, {sy}) off, shifted by ({dx}, {dy})"
-            );
+            assert!(back_on_boundaries((sx, sy), (dx, dy), c), "framed ({sx}, {sy}) off, shifted by ({dx}, {dy})");
             // Without the holes, the fold (x held at the edges' phase) decides y as before.
             assert_eq!(cue_phase(&img, &model, c, false, false).1, fold.1);
         }
@@ -727,7 +748,6 @@ mod tests {
         use crate::fit::target::shift_periodic;
         let c = 16;
         let sharp = soft_front_lit_bumps(c);
-        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
         let half_off = shift_periodic(&sharp, 8, 8);
         for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-7, 2), (3, 11)] {
             let img = shift_periodic(&sharp, sx, sy);
@@ -735,18 +755,18 @@ mod tests {
             assert!(ex < BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
             let (fx, fy) = cue_phase(&img, &half_off, c, false, false);
             assert!(
-                off(sx + fx).abs() >= 7 && off(sy + fy).abs() >= 7,
+                off_boundary(sx + fx, c).abs() >= 7 && off_boundary(sy + fy, c).abs() >= 7,
                 "framed ({sx}, {sy}): the fold gave ({fx}, {fy}), not half a cell off"
             );
             let (dx, dy) = cue_phase(&img, &half_off, c, false, true);
             assert!(
-                off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
+                back_on_boundaries((sx, sy), (dx, dy), c),
                 "framed ({sx}, {sy}) off: shifted by ({dx}, {dy}), the fold alone ({fx}, {fy})"
             );
         }
         // A crop the fold put on the boundaries stays there.
         let (dx, dy) = cue_phase(&shift_periodic(&sharp, 5, -3), &sharp, c, false, true);
-        assert!(off(5 + dx).abs() <= 1 && off(-3 + dy).abs() <= 1, "({dx}, {dy})");
+        assert!(off_boundary(5 + dx, c).abs() <= 1 && off_boundary(-3 + dy, c).abs() <= 1, "({dx}, {dy})");
     }
 
     /// A weave painted as smooth tubes, `c` px per cell: `pattern` rows (1 = warp on top), yarns
@@ -808,7 +828,6 @@ mod tests {
         use crate::fit::target::shift_periodic;
         let c = 16;
         let sharp = twill_over_bright_holes(c);
-        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
         // The picture's own premises: the edges settle x only; on the boundaries the bright holes
         // make the boundaries brighter than the yarn centres along y (step 4 would move y half a
         // cell), and the cells there hold one family each (twice the colour spread half a cell
@@ -824,10 +843,7 @@ mod tests {
             // The fold (against the picture itself on its boundaries) puts y right; the holes are
             // vetoed as a front-lit capture's (scene 10: "front-lit for sure").
             let (dx, dy) = cue_phase(&img, &sharp, c, false, true);
-            assert!(
-                off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
-                "framed ({sx}, {sy}) off: shifted by ({dx}, {dy})"
-            );
+            assert!(back_on_boundaries((sx, sy), (dx, dy), c), "framed ({sx}, {sy}) off: shifted by ({dx}, {dy})");
         }
     }
 
@@ -843,27 +859,16 @@ mod tests {
 
     #[test]
     fn specular_spots_on_two_colour_crowns_are_not_taken_for_holes() {
-        use crate::fit::target::shift_periodic;
         let c = 16;
         let sharp = glossy_plain(c, 0.5);
-        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
         // No axis settled by the edges; the spots pass step 2's test for holes, half a cell off.
         let (_, (ex, ey)) = boundary_phase(&sharp, c);
         assert!(ex < BOUNDARY_MIN_STRENGTH && ey < BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
         let ((hx, hy), (rx, ry)) = hole_phase(&sharp, c).unwrap();
-        assert!(off(hx).abs() >= 7 && off(hy).abs() >= 7, "spots at ({hx}, {hy})");
+        assert!(off_boundary(hx, c).abs() >= 7 && off_boundary(hy, c).abs() >= 7, "spots at ({hx}, {hy})");
         assert!(rx >= HOLE_MIN_CONCENTRATION && ry >= HOLE_MIN_CONCENTRATION, "{rx} {ry}");
         assert!(corner_reach(&sharp, c, (hx, hy), SPOT_REACH) <= MAX_HOLE_REACH);
-        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-7, 2)] {
-            let img = shift_periodic(&sharp, sx, sy);
-            for front_lit in [false, true] {
-                let (dx, dy) = cue_phase(&img, &sharp, c, true, front_lit);
-                assert!(
-                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
-                    "framed ({sx}, {sy}) off, front-lit {front_lit}: shifted by ({dx}, {dy})"
-                );
-            }
-        }
+        assert_reframed(&sharp, &sharp, c, true);
     }
 
     #[test]
@@ -872,19 +877,9 @@ mod tests {
         let c = 16;
         let sharp = glossy_plain(c, 0.0);
         let half_off = shift_periodic(&sharp, 8, 8);
-        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
-        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-7, 2)] {
-            let img = shift_periodic(&sharp, sx, sy);
-            // The fold forced half a cell off: put back by step 4 under a front light, and by the
-            // cells' colours (step 5) whatever the light.
-            for front_lit in [true, false] {
-                let (dx, dy) = cue_phase(&img, &half_off, c, false, front_lit);
-                assert!(
-                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
-                    "framed ({sx}, {sy}) off, front-lit {front_lit}: shifted by ({dx}, {dy})"
-                );
-            }
-        }
+        // The fold forced half a cell off: put back by step 4 under a front light, and by the
+        // cells' colours (step 5) whatever the light.
+        assert_reframed(&sharp, &half_off, c, false);
     }
 
     /// A plain weave of orange and grey tubes over a black background, lit from every side but
@@ -905,27 +900,16 @@ mod tests {
 
     #[test]
     fn strong_edges_a_quarter_cell_off_give_way_to_the_cells_colours() {
-        use crate::fit::target::shift_periodic;
         let c = 16;
         let sharp = unevenly_lit_plain(c);
-        let off = |v: i32| (v + c as i32 / 2).rem_euclid(c as i32) - c as i32 / 2;
         // The picture's premise: the edges are strong on both axes (step 1 settles both) but
         // gather on the shaded flanks, away from the boundaries.
         let ((bx, by), (ex, ey)) = boundary_phase(&sharp, c);
         assert!(ex >= BOUNDARY_MIN_STRENGTH && ey >= BOUNDARY_MIN_STRENGTH, "edge strengths {ex} {ey}");
-        assert!(off(bx).abs().max(off(by).abs()) >= 3, "edges at ({bx}, {by})");
+        assert!(off_boundary(bx, c).abs().max(off_boundary(by, c).abs()) >= 3, "edges at ({bx}, {by})");
         let ((fx, fy), _) = family_phase(&sharp, c).unwrap();
-        assert!(off(fx).abs() <= 1 && off(fy).abs() <= 1, "colours at ({fx}, {fy})");
-        for (sx, sy) in [(0, 0), (5, -3), (8, 8), (-4, 2)] {
-            let img = shift_periodic(&sharp, sx, sy);
-            for front_lit in [false, true] {
-                let (dx, dy) = cue_phase(&img, &sharp, c, false, front_lit);
-                assert!(
-                    off(sx + dx).abs() <= 1 && off(sy + dy).abs() <= 1,
-                    "framed ({sx}, {sy}) off, front-lit {front_lit}: shifted by ({dx}, {dy})"
-                );
-            }
-        }
+        assert!(off_boundary(fx, c).abs() <= 1 && off_boundary(fy, c).abs() <= 1, "colours at ({fx}, {fy})");
+        assert_reframed(&sharp, &sharp, c, false);
         // One colour, the same light: no evidence, the edges keep their phase.
         let grey = painted_weave(
             &[&[1, 0], &[0, 1]],
