@@ -7,8 +7,8 @@
 //! sweep, become the starts.
 
 use super::candidates::{best_variant, greedy_sweeps, inverted_twin, rank_candidates};
-use super::colours::{estimate_colours, pattern_loss_read, Reading};
-use super::evaluator::{state_loss, Evaluator};
+use super::colours::{estimate_colours, pattern_loss_memo, Reading};
+use super::evaluator::{state_loss, Evaluator, RecordMemo};
 use super::options::PreOptions;
 use super::parsimony::PatternChoice;
 use super::stages::StageClock;
@@ -367,9 +367,12 @@ fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec
 /// that rule). The scans' loss does not rank the variants reliably anyway (see [`scan_shape`]);
 /// the descent of each does. So both readings' variants are offered to it, and it keeps the best.
 fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
+    // Both scans start from the same cloth and walk the same grids: the states they share are
+    // traced once (`RecordMemo`).
+    let memo = RecordMemo::new(ev);
     let mut out: Vec<(ClothParams, Reading)> =
-        scan_shape(ev, cloth, c, Reading::YarnPixels, stop).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
-    for v in scan_shape(ev, cloth, c, Reading::EveryPixel, stop) {
+        scan_shape(&memo, cloth, c, Reading::YarnPixels, stop).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
+    for v in scan_shape(&memo, cloth, c, Reading::EveryPixel, stop) {
         if !out.iter().any(|(u, _)| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
             out.push((v, Reading::EveryPixel));
         }
@@ -386,10 +389,11 @@ fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool
 /// families' radii moved by up to ±1 in turn (weft and warp can differ by half the range).
 /// Returns the four variants, duplicates removed: the scans' loss, at the default appearance,
 /// does not rank them reliably; the caller's descent does.
-fn scan_shape(ev: &Evaluator, cloth: &ClothParams, c: u32, reading: Reading, stop: &AtomicBool) -> Vec<ClothParams> {
+fn scan_shape(memo: &RecordMemo, cloth: &ClothParams, c: u32, reading: Reading, stop: &AtomicBool) -> Vec<ClothParams> {
+    let ev = memo.ev();
     let (lo, hi) = RADIUS_RANGE;
     let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
-    let loss = |e: &Evaluator, cl: &mut ClothParams| pattern_loss_read(e, cl, c, reading);
+    let loss = |_: &Evaluator, cl: &mut ClothParams| pattern_loss_memo(memo, cl, c, reading);
     let mut cl = cloth.clone();
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
@@ -638,7 +642,7 @@ mod tests {
         let shapes = |v: &[ClothParams]| v.iter().map(|v| (v.n_p, v.r_e, v.r_a)).collect::<Vec<_>>();
         // The yarn-pixel reading alone (session 11 to 14) leaves the glowing edges out and
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
-        let yarn = scan_shape(&ev, &start, c, Reading::YarnPixels, &stop);
+        let yarn = scan_shape(&RecordMemo::new(&ev), &start, c, Reading::YarnPixels, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
         let all: Vec<ClothParams> = shape_variants(&ev, &start, c, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
