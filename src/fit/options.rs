@@ -93,6 +93,10 @@ pub struct PreOptions {
     /// Pixels per cell of the pattern pre-estimation renders (0: the fit's; coarser renders
     /// cannot tell a pattern from its inverse with swapped colours).
     pub px_per_cell: u32,
+    /// Pixels per cell of the warm-up's shape scans (radius and ply grids; 0: those of the
+    /// ranking), never more than the ranking's. The scans only offer shape variants to the
+    /// descents at the fit's resolution, which rank them (`preestimate::scan_shape`).
+    pub scan_px_per_cell: u32,
     /// Samples per pixel of the pre-estimation renders.
     pub spp: u32,
     /// Best patterns of the coarse candidate ranking that get a warm-up (the best named weave and
@@ -122,6 +126,7 @@ impl Default for PreOptions {
         PreOptions {
             enabled: true,
             px_per_cell: 0,
+            scan_px_per_cell: 8,
             spp: 2,
             shortlist: 1,
             warmup: 8,

@@ -85,6 +85,22 @@ pub(crate) fn pre_estimate(
         ..fit_scene(n_e, n_a, cp, opts.spp, st.render.seed, &st.render.lights)
     };
     let pre_ev = st.ev.sibling(pre_scene, resample(crop, n_a as u32 * cp, n_e as u32 * cp), st.render.loss_block);
+    // The shape scans' view: coarser than the ranking's (see `PreOptions::scan_px_per_cell`).
+    let sp = match opts.scan_px_per_cell {
+        0 => cp,
+        s => s.min(cp),
+    };
+    let coarse_scan;
+    let scan_ev = if sp == cp {
+        &pre_ev
+    } else {
+        let scene = Scene {
+            exposure: st.ev.scene().exposure,
+            ..fit_scene(n_e, n_a, sp, opts.spp, st.render.seed, &st.render.lights)
+        };
+        coarse_scan = st.ev.sibling(scene, resample(crop, n_a as u32 * sp, n_e as u32 * sp), st.render.loss_block);
+        &coarse_scan
+    };
     let shortlist = if st.cells {
         // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
         // depends on n_p, n_f and the appearance, which are still at their defaults here.
@@ -112,7 +128,7 @@ pub(crate) fn pre_estimate(
     st.control.progress.begin("pre-estimate", shortlist.len() as u64);
     let mut warm: Vec<(f32, ClothParams)> = Vec::new();
     for p in shortlist {
-        warm.push(warm_up(st, &pre_ev, &cloth, p, cp, opts.warmup));
+        warm.push(warm_up(st, scan_ev, &cloth, p, sp, opts.warmup));
         st.control.progress.advance(1);
     }
     st.control.progress.finish();
@@ -306,7 +322,7 @@ pub(crate) fn network_reading(
 
 /// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and
 /// shading, enough to hide the pattern's signal, so each candidate gets its own. The scans' loss
-/// (default appearance but the colours, on `pre_ev` at `cp` px per cell) does not rank the shape
+/// (default appearance but the colours, on `pre_ev` at `cp` px per cell, the scans' view) does not rank the shape
 /// variants reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations)
 /// of the appearance on the fit's evaluator, and the best one is polished. Returns the polished
 /// loss and cloth.
