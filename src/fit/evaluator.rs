@@ -851,6 +851,34 @@ mod tests {
     }
 
     #[test]
+    fn a_record_memo_traces_each_state_once_and_answers_a_fresh_trace() {
+        let cloth = ClothParams::preset("plain").expect("preset");
+        let scene = fit_scene(2, 2, 4, 2, 1, &LightRig::default_rig());
+        let ev = Evaluator::new(scene.clone(), Image::filled(8, 8, [0.4; 3]), 2);
+        let memo = RecordMemo::new(&ev);
+        let first = memo.record(&cloth);
+        let again = memo.record(&cloth);
+        assert!(Arc::ptr_eq(&first, &again), "the same record handed back");
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (1, 1));
+        // The record is a fresh trace's, bit for bit (shaded at another appearance too).
+        let fresh = Evaluator::new(scene, Image::filled(8, 8, [0.4; 3]), 2).record(&cloth);
+        let mut a = cloth.appearance.clone();
+        a.r_b_a = [0.9, 0.2, 0.1];
+        for look in [&cloth.appearance, &a] {
+            let bits = |img: Image| img.data.iter().flat_map(|p| p.map(f32::to_bits)).collect::<Vec<u32>>();
+            assert_eq!(bits(first.shade(look)), bits(fresh.shade(look)));
+        }
+        // A radius one ulp off, or another sampling appearance, is another state: traced.
+        let mut other = cloth.clone();
+        other.r_e = f32::from_bits(other.r_e.to_bits() + 1);
+        memo.record(&other);
+        other.r_e = cloth.r_e;
+        other.appearance = a;
+        memo.record(&other);
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (3, 1));
+    }
+
+    #[test]
     fn a_state_scored_before_is_answered_from_the_memo_without_a_re_trace() {
         let cloth = ClothParams::preset("plain").expect("preset");
         let scene = fit_scene(2, 2, 4, 2, 1, &LightRig::default_rig());

@@ -664,5 +664,15 @@ mod tests {
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
+        // At the scans' default pixels per cell (half the fit's: `PreOptions::scan_px_per_cell`),
+        // on the target resampled as the pre-estimation does, the truth's shape is still offered.
+        let sp = PreOptions::default().scan_px_per_cell;
+        let coarse = Evaluator::new(
+            fit_scene(5, 5, sp, 2, 203, &crate::scene::LightRig::default_rig()),
+            resample(ev.target(), 5 * sp, 5 * sp),
+            2,
+        );
+        let all: Vec<ClothParams> = shape_variants(&coarse, &start, sp, &stop).into_iter().map(|v| v.0).collect();
+        assert!(all.iter().any(near_truth), "both readings at {sp} px per cell: {:?}", shapes(&all));
     }
 }
