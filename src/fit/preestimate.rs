@@ -85,7 +85,7 @@ pub(crate) fn pre_estimate(
         ..fit_scene(n_e, n_a, cp, opts.spp, st.render.seed, &st.render.lights)
     };
     let pre_ev = st.ev.sibling(pre_scene, resample(crop, n_a as u32 * cp, n_e as u32 * cp), st.render.loss_block);
-    // The shape scans' view: coarser than the ranking's (see `PreOptions::scan_px_per_cell`).
+    // The shape scans' view: the ranking's unless asked coarser (`PreOptions::scan_px_per_cell`).
     let sp = match opts.scan_px_per_cell {
         0 => cp,
         s => s.min(cp),
@@ -664,9 +664,9 @@ mod tests {
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
-        // At the scans' default pixels per cell (half the fit's: `PreOptions::scan_px_per_cell`),
-        // on the target resampled as the pre-estimation does, the truth's shape is still offered.
-        let sp = PreOptions::default().scan_px_per_cell;
+        // At half the fit's pixels per cell (`PreOptions::scan_px_per_cell` = 8), on the target
+        // resampled as the pre-estimation does, the truth's shape is still offered here.
+        let sp = 8;
         let coarse = Evaluator::new(
             fit_scene(5, 5, sp, 2, 203, &crate::scene::LightRig::default_rig()),
             resample(ev.target(), 5 * sp, 5 * sp),
