@@ -2,7 +2,7 @@
 //! specular colour from its brightest pixels, each converted into the BYSDF's parameter through
 //! the renderer's response (two re-shadings of the recorded paths, no re-trace).
 
-use super::evaluator::Evaluator;
+use super::evaluator::{Evaluator, RecordMemo};
 use super::target;
 use crate::image_io::Image;
 use crate::params::ClothParams;
@@ -32,6 +32,12 @@ pub(crate) enum Reading {
 pub(crate) fn pattern_loss_read(ev: &Evaluator, cand: &mut ClothParams, c: u32, reading: Reading) -> f32 {
     let cache = ev.record(cand);
     fit_colours(ev, cand, &cache, c, reading)
+}
+
+/// [`pattern_loss_read`] with the record taken from `memo` (traced once per distinct state).
+pub(crate) fn pattern_loss_memo(memo: &RecordMemo, cand: &mut ClothParams, c: u32, reading: Reading) -> f32 {
+    let cache = memo.record(cand);
+    fit_colours(memo.ev(), cand, &cache, c, reading)
 }
 
 /// Most share of a pixel's samples (after the target's blur) that may miss the model's cloth for

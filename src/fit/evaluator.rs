@@ -340,6 +340,49 @@ impl TraceCounter {
     }
 }
 
+/// The recorded paths of the states one scan traced on one evaluator, answered again without a
+/// re-trace when the scan asks for the same state (the whole cloth, appearance included: the
+/// appearance steers the sampling of the recorded paths, `Prepared::record`). A record is a
+/// deterministic function of the cloth and the evaluator's fixed scene, so the answer is the same
+/// bits as a fresh trace. Why: the warm-up's shape scans run the same coordinate search twice, once
+/// per reading of the family colours (`preestimate::shape_variants`), from the same grey start;
+/// both walk the same radius grid and, where they settle on the same radius, the same ply grid, and
+/// only the colour estimate made from each record differs. Held for one candidate's scans and then
+/// dropped (a record at the fit's pixels per cell is a few MB; a scan traces about 50 states).
+pub(crate) struct RecordMemo<'a> {
+    ev: &'a Evaluator,
+    /// Every state recorded so far, keyed by its `Debug` text (as [`Evaluator::trace_mse`]).
+    states: Mutex<Vec<(String, Arc<PathCache>)>>,
+}
+
+impl<'a> RecordMemo<'a> {
+    /// An empty memo of records on `ev`.
+    pub(crate) fn new(ev: &'a Evaluator) -> Self {
+        RecordMemo { ev, states: Mutex::default() }
+    }
+
+    /// The evaluator the records are made on.
+    pub(crate) fn ev(&self) -> &'a Evaluator {
+        self.ev
+    }
+
+    /// The recorded paths of `cloth` ([`Evaluator::record`]), traced once per distinct state; a
+    /// repeat is counted as reused on the evaluator's counter.
+    pub(crate) fn record(&self, cloth: &ClothParams) -> Arc<PathCache> {
+        let key = format!("{cloth:?}");
+        let known = self.states.lock().ok().and_then(|m| m.iter().find(|(k, _)| *k == key).map(|(_, c)| c.clone()));
+        if let Some(c) = known {
+            self.ev.traces.add_reused();
+            return c;
+        }
+        let c = Arc::new(self.ev.record(cloth));
+        if let Ok(mut m) = self.states.lock() {
+            m.push((key, c.clone()));
+        }
+        c
+    }
+}
+
 /// States whose loss an evaluator remembers ([`Evaluator::trace_mse`]), most recent last.
 const MEMO_STATES: usize = 64;
 
@@ -805,6 +848,34 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn a_record_memo_traces_each_state_once_and_answers_a_fresh_trace() {
+        let cloth = ClothParams::preset("plain").expect("preset");
+        let scene = fit_scene(2, 2, 4, 2, 1, &LightRig::default_rig());
+        let ev = Evaluator::new(scene.clone(), Image::filled(8, 8, [0.4; 3]), 2);
+        let memo = RecordMemo::new(&ev);
+        let first = memo.record(&cloth);
+        let again = memo.record(&cloth);
+        assert!(Arc::ptr_eq(&first, &again), "the same record handed back");
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (1, 1));
+        // The record is a fresh trace's, bit for bit (shaded at another appearance too).
+        let fresh = Evaluator::new(scene, Image::filled(8, 8, [0.4; 3]), 2).record(&cloth);
+        let mut a = cloth.appearance.clone();
+        a.r_b_a = [0.9, 0.2, 0.1];
+        for look in [&cloth.appearance, &a] {
+            let bits = |img: Image| img.data.iter().flat_map(|p| p.map(f32::to_bits)).collect::<Vec<u32>>();
+            assert_eq!(bits(first.shade(look)), bits(fresh.shade(look)));
+        }
+        // A radius one ulp off, or another sampling appearance, is another state: traced.
+        let mut other = cloth.clone();
+        other.r_e = f32::from_bits(other.r_e.to_bits() + 1);
+        memo.record(&other);
+        other.r_e = cloth.r_e;
+        other.appearance = a;
+        memo.record(&other);
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (3, 1));
     }
 
     #[test]

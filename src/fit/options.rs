@@ -93,6 +93,12 @@ pub struct PreOptions {
     /// Pixels per cell of the pattern pre-estimation renders (0: the fit's; coarser renders
     /// cannot tell a pattern from its inverse with swapped colours).
     pub px_per_cell: u32,
+    /// Pixels per cell of the warm-up's shape scans (radius and ply grids; 0, the default: those
+    /// of the ranking), never more than the ranking's. Coarser scans are faster but not free: at
+    /// 8 px per cell (half the fit's) the warm-up of a 5×5 own render took 16 instead of 36 CPU s
+    /// with the same pattern, but the Mitsuba twill d03 came back with 1 ply at 27.6 dB instead of
+    /// 29.8 dB (docs/benchmarks.md, session 18): the ply stripes and lobes need the pixels.
+    pub scan_px_per_cell: u32,
     /// Samples per pixel of the pre-estimation renders.
     pub spp: u32,
     /// Best patterns of the coarse candidate ranking that get a warm-up (the best named weave and
@@ -122,6 +128,7 @@ impl Default for PreOptions {
         PreOptions {
             enabled: true,
             px_per_cell: 0,
+            scan_px_per_cell: 0,
             spp: 2,
             shortlist: 1,
             warmup: 8,

@@ -7,8 +7,8 @@
 //! sweep, become the starts.
 
 use super::candidates::{best_variant, greedy_sweeps, inverted_twin, rank_candidates};
-use super::colours::{estimate_colours, pattern_loss_read, Reading};
-use super::evaluator::{state_loss, Evaluator};
+use super::colours::{estimate_colours, pattern_loss_memo, Reading};
+use super::evaluator::{state_loss, Evaluator, RecordMemo};
 use super::options::PreOptions;
 use super::parsimony::PatternChoice;
 use super::stages::StageClock;
@@ -85,6 +85,22 @@ pub(crate) fn pre_estimate(
         ..fit_scene(n_e, n_a, cp, opts.spp, st.render.seed, &st.render.lights)
     };
     let pre_ev = st.ev.sibling(pre_scene, resample(crop, n_a as u32 * cp, n_e as u32 * cp), st.render.loss_block);
+    // The shape scans' view: the ranking's unless asked coarser (`PreOptions::scan_px_per_cell`).
+    let sp = match opts.scan_px_per_cell {
+        0 => cp,
+        s => s.min(cp),
+    };
+    let coarse_scan;
+    let scan_ev = if sp == cp {
+        &pre_ev
+    } else {
+        let scene = Scene {
+            exposure: st.ev.scene().exposure,
+            ..fit_scene(n_e, n_a, sp, opts.spp, st.render.seed, &st.render.lights)
+        };
+        coarse_scan = st.ev.sibling(scene, resample(crop, n_a as u32 * sp, n_e as u32 * sp), st.render.loss_block);
+        &coarse_scan
+    };
     let shortlist = if st.cells {
         // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
         // depends on n_p, n_f and the appearance, which are still at their defaults here.
@@ -112,7 +128,7 @@ pub(crate) fn pre_estimate(
     st.control.progress.begin("pre-estimate", shortlist.len() as u64);
     let mut warm: Vec<(f32, ClothParams)> = Vec::new();
     for p in shortlist {
-        warm.push(warm_up(st, &pre_ev, &cloth, p, cp, opts.warmup));
+        warm.push(warm_up(st, scan_ev, &cloth, p, sp, opts.warmup));
         st.control.progress.advance(1);
     }
     st.control.progress.finish();
@@ -306,7 +322,7 @@ pub(crate) fn network_reading(
 
 /// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and
 /// shading, enough to hide the pattern's signal, so each candidate gets its own. The scans' loss
-/// (default appearance but the colours, on `pre_ev` at `cp` px per cell) does not rank the shape
+/// (default appearance but the colours, on `pre_ev` at `cp` px per cell, the scans' view) does not rank the shape
 /// variants reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations)
 /// of the appearance on the fit's evaluator, and the best one is polished. Returns the polished
 /// loss and cloth.
@@ -367,9 +383,12 @@ fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec
 /// that rule). The scans' loss does not rank the variants reliably anyway (see [`scan_shape`]);
 /// the descent of each does. So both readings' variants are offered to it, and it keeps the best.
 fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
+    // Both scans start from the same cloth and walk the same grids: the states they share are
+    // traced once (`RecordMemo`).
+    let memo = RecordMemo::new(ev);
     let mut out: Vec<(ClothParams, Reading)> =
-        scan_shape(ev, cloth, c, Reading::YarnPixels, stop).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
-    for v in scan_shape(ev, cloth, c, Reading::EveryPixel, stop) {
+        scan_shape(&memo, cloth, c, Reading::YarnPixels, stop).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
+    for v in scan_shape(&memo, cloth, c, Reading::EveryPixel, stop) {
         if !out.iter().any(|(u, _)| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
             out.push((v, Reading::EveryPixel));
         }
@@ -386,10 +405,11 @@ fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool
 /// families' radii moved by up to ±1 in turn (weft and warp can differ by half the range).
 /// Returns the four variants, duplicates removed: the scans' loss, at the default appearance,
 /// does not rank them reliably; the caller's descent does.
-fn scan_shape(ev: &Evaluator, cloth: &ClothParams, c: u32, reading: Reading, stop: &AtomicBool) -> Vec<ClothParams> {
+fn scan_shape(memo: &RecordMemo, cloth: &ClothParams, c: u32, reading: Reading, stop: &AtomicBool) -> Vec<ClothParams> {
+    let ev = memo.ev();
     let (lo, hi) = RADIUS_RANGE;
     let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
-    let loss = |e: &Evaluator, cl: &mut ClothParams| pattern_loss_read(e, cl, c, reading);
+    let loss = |_: &Evaluator, cl: &mut ClothParams| pattern_loss_memo(memo, cl, c, reading);
     let mut cl = cloth.clone();
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
@@ -638,11 +658,21 @@ mod tests {
         let shapes = |v: &[ClothParams]| v.iter().map(|v| (v.n_p, v.r_e, v.r_a)).collect::<Vec<_>>();
         // The yarn-pixel reading alone (session 11 to 14) leaves the glowing edges out and
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
-        let yarn = scan_shape(&ev, &start, c, Reading::YarnPixels, &stop);
+        let yarn = scan_shape(&RecordMemo::new(&ev), &start, c, Reading::YarnPixels, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
         let all: Vec<ClothParams> = shape_variants(&ev, &start, c, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
+        // At half the fit's pixels per cell (`PreOptions::scan_px_per_cell` = 8), on the target
+        // resampled as the pre-estimation does, the truth's shape is still offered here.
+        let sp = 8;
+        let coarse = Evaluator::new(
+            fit_scene(5, 5, sp, 2, 203, &crate::scene::LightRig::default_rig()),
+            resample(ev.target(), 5 * sp, 5 * sp),
+            2,
+        );
+        let all: Vec<ClothParams> = shape_variants(&coarse, &start, sp, &stop).into_iter().map(|v| v.0).collect();
+        assert!(all.iter().any(near_truth), "both readings at {sp} px per cell: {:?}", shapes(&all));
     }
 }

@@ -110,7 +110,7 @@ pub(super) fn lm_appearance(
     let spans: Vec<f64> = PARAMS[..N_APPEARANCE].iter().map(|p| p.span() as f64).collect();
     let opts =
         LmOptions { max_trials: iters, max_step: LM_MAX_STEP, damping_abs: LM_DAMPING_FLOOR, ..LmOptions::default() };
-    let mut problem = AppearanceLm { ev, cache, lin: Default::default() };
+    let mut problem = AppearanceLm { ev, cache };
     let out = lm::minimize(&mut problem, cloth.appearance.to_vec(), &spans, &opts, stop);
     cloth.appearance = Appearance::from_slice(&out.x);
     out.loss as f32
@@ -188,27 +188,28 @@ pub(super) fn trade_exposure(
 /// render that is nearly all clipped).
 const LM_DAMPING_FLOOR: f64 = 1e-6 * 1e-12;
 
-/// The appearance at fixed geometry as a Levenberg–Marquardt problem: loss MSE + barrier, the
-/// exact gradient and Gauss–Newton Hessian of one derivative shading (kept from `loss` for
-/// `linearise`, which [`lm::minimize`] calls right after `loss` at the same point), steps
+/// The appearance at fixed geometry as a Levenberg–Marquardt problem: loss MSE + barrier from a
+/// plain shading, the exact gradient and Gauss–Newton Hessian of one derivative shading, taken
+/// only where [`lm::minimize`] linearises (the start and the kept trials a trial follows), steps
 /// projected into the Table-1 ranges (where the barrier is zero).
 struct AppearanceLm<'a> {
     ev: &'a Evaluator,
     cache: &'a crate::render::PathCache,
-    lin: (Vec<f64>, Vec<f64>),
 }
 
 impl LmProblem for AppearanceLm<'_> {
     type Point = [f32; N_APPEARANCE];
 
+    /// The loss of one plain shading: a trial that is refused (or the last one kept) needs no
+    /// derivatives, and the derivative shading (a dual number of 30 partials per value) costs many
+    /// plain ones. Its value equals the derivative shading's up to rounding in the last bits.
     fn loss(&mut self, x: &[f32; N_APPEARANCE]) -> f64 {
-        let (m, g, h) = self.ev.loss_grad_hessian(self.cache, &Appearance::from_slice(x));
-        self.lin = (g.iter().map(|&v| v as f64).collect(), h);
-        total_loss(m, x) as f64
+        total_loss(self.ev.loss_of(self.cache, &Appearance::from_slice(x)), x) as f64
     }
 
-    fn linearise(&mut self, _x: &[f32; N_APPEARANCE]) -> (Vec<f64>, Vec<f64>) {
-        std::mem::take(&mut self.lin)
+    fn linearise(&mut self, x: &[f32; N_APPEARANCE]) -> (Vec<f64>, Vec<f64>) {
+        let (_, g, h) = self.ev.loss_grad_hessian(self.cache, &Appearance::from_slice(x));
+        (g.iter().map(|&v| v as f64).collect(), h)
     }
 
     fn step(&self, x: &[f32; N_APPEARANCE], delta: &[f64]) -> [f32; N_APPEARANCE] {

@@ -29,8 +29,9 @@ pub trait LmProblem {
     fn loss(&mut self, x: &Self::Point) -> f64;
 
     /// Gradient (`n` values) and Gauss–Newton Hessian (row-major `n × n`) of the loss at `x`.
-    /// [`minimize`] calls it only for the starting point and for kept trials, each time right
-    /// after [`LmProblem::loss`] at the same point, so an implementation may return what that
+    /// [`minimize`] calls it only for the starting point and for a kept trial that another trial
+    /// follows (the last kept point's would go unused), each time after [`LmProblem::loss`] at the
+    /// same point with no other `loss` call between, so an implementation may return what that
     /// call computed.
     fn linearise(&mut self, x: &Self::Point) -> (Vec<f64>, Vec<f64>);
 
@@ -123,9 +124,18 @@ pub fn minimize<P: LmProblem>(
     assert_eq!(hess.len(), n * n, "Hessian of {n} unknowns");
     let mut mu = opts.mu_start;
     let (mut trials, mut accepted, mut rejections) = (0, 0, 0);
+    // Whether `g` and `hess` still belong to the point before the last kept trial: the kept
+    // point is linearised only when a trial follows it (the same calls in the same order as
+    // linearising at once, less the last one, which is often the most costly step of a short
+    // run: the fit's derivative shading).
+    let mut stale = false;
     while trials < opts.max_trials {
         if stop.load(Ordering::Relaxed) || mu > opts.mu_max {
             break;
+        }
+        if stale {
+            (g, hess) = problem.linearise(&x);
+            stale = false;
         }
         trials += 1;
         let eps = (opts.damping_rel * (0..n).map(|i| hess[i * n + i] * scale[i] * scale[i]).fold(0.0, f64::max))
@@ -147,7 +157,7 @@ pub fn minimize<P: LmProblem>(
         match trial {
             Some((t, l)) if l.is_finite() && l < loss => {
                 let gain = (loss - l) / loss.max(1e-300);
-                (g, hess) = problem.linearise(&t);
+                stale = true;
                 (x, loss) = (t, l);
                 mu = (mu / opts.mu_down).max(opts.mu_min);
                 accepted += 1;
@@ -179,11 +189,21 @@ mod tests {
         lo: Vec<f64>,
         hi: Vec<f64>,
         evals: usize,
+        /// Linearisations, and the point of the last `loss` call.
+        lins: usize,
+        last: Vec<f64>,
     }
 
     impl<F: Fn(&[f64]) -> (Vec<f64>, Vec<Vec<f64>>)> Residuals<F> {
         fn new(f: F, n: usize) -> Self {
-            Residuals { f, lo: vec![f64::NEG_INFINITY; n], hi: vec![f64::INFINITY; n], evals: 0 }
+            Residuals {
+                f,
+                lo: vec![f64::NEG_INFINITY; n],
+                hi: vec![f64::INFINITY; n],
+                evals: 0,
+                lins: 0,
+                last: Vec::new(),
+            }
         }
     }
 
@@ -191,9 +211,13 @@ mod tests {
         type Point = Vec<f64>;
         fn loss(&mut self, x: &Vec<f64>) -> f64 {
             self.evals += 1;
+            self.last = x.clone();
             (self.f)(x).0.iter().map(|r| r * r).sum()
         }
         fn linearise(&mut self, x: &Vec<f64>) -> (Vec<f64>, Vec<f64>) {
+            // The contract: after `loss` at the same point, no other `loss` between.
+            assert_eq!(*x, self.last, "linearised away from the last loss point");
+            self.lins += 1;
             let (r, jac) = (self.f)(x);
             let n = x.len();
             let g = (0..n).map(|a| 2.0 * jac.iter().zip(&r).map(|(row, ri)| row[a] * ri).sum::<f64>()).collect();
@@ -225,6 +249,23 @@ mod tests {
     ) -> LmOutcome<Vec<f64>> {
         let n = x0.len();
         minimize(prob, x0, &vec![1.0; n], opts, &AtomicBool::new(false))
+    }
+
+    #[test]
+    fn the_last_kept_point_is_not_linearised() {
+        // A quadratic bowl: every trial is kept. Four trials linearise the start and the first
+        // three kept points; the fourth kept point would go unused.
+        let bowl = |p: &[f64]| (vec![p[0] - 3.0, 2.0 * (p[1] + 1.0)], vec![vec![1.0, 0.0], vec![0.0, 2.0]]);
+        let opts = LmOptions { max_trials: 4, max_step: f64::INFINITY, ..LmOptions::default() };
+        let mut prob = Residuals::new(bowl, 2);
+        let out = run(&mut prob, vec![0.0, 0.0], &opts);
+        assert_eq!((out.trials, out.accepted), (4, 4), "{out:?}");
+        assert_eq!((prob.evals, prob.lins), (5, 4));
+        // A run that ends on refused trials linearised every kept point (each was followed).
+        let mut prob = Residuals::new(rosenbrock, 2);
+        let out = run(&mut prob, vec![-1.2, 1.0], &LmOptions { max_trials: 40, ..LmOptions::default() });
+        assert!(out.accepted < out.trials, "{out:?}");
+        assert!(prob.lins >= out.accepted && prob.lins <= out.accepted + 1, "{} {out:?}", prob.lins);
     }
 
     #[test]
