@@ -217,8 +217,9 @@ fn log_floor(g: &Gray) -> f64 {
 /// shadowed flanks where they meet — while a yarn's crown, diffuse or specular, is a ridge. The
 /// edge energy counts both alike (a highlight line along each yarn's crown has an edge on either
 /// side), so on glossy yarns it repeats at half the yarn pitch, or its fundamental at the yarn
-/// pitch is cancelled by the crowns' edges half a period off (see [`ValleyRepeat`]). A dark
-/// yarn of the other family wider than `2r` is not a valley, only the gaps at its sides are.
+/// pitch is cancelled by the crowns' edges half a period off (see `ValleyRepeat`). A dark
+/// yarn of the other family wider than `2r` is no valley (its sides are steps); the gaps at its
+/// sides are.
 pub fn valley_energy(g: &Gray, axis_x: bool, r: usize) -> Vec<f64> {
     let eps = log_floor(g);
     let t;
@@ -261,10 +262,10 @@ fn trailing_max(x: &[f64], r: usize) -> Vec<f64> {
     out
 }
 
-/// Smallest autocorrelation of the valley energy at a candidate pitch for [`ValleyRepeat`] to
+/// Smallest autocorrelation of the valley energy at a candidate pitch for `ValleyRepeat` to
 /// confirm it (and at twice the candidate for it to call the candidate half a yarn).
 pub const MIN_VALLEY_REPEAT: f64 = 0.4;
-/// Smallest relative amplitude of the valley energy's fundamental for [`ValleyRepeat`] to
+/// Smallest relative amplitude of the valley energy's fundamental for `ValleyRepeat` to
 /// confirm a pitch (the edges' floor is [`MIN_EDGE_CONFIDENCE`]; valleys are sparser than edges,
 /// so a lattice of valleys has a stronger fundamental: 0.3–0.8 on the renders where it decides).
 pub const MIN_VALLEY_CONF: f64 = 0.25;
@@ -394,8 +395,13 @@ pub const FINE_DIVIDES_TOL: f64 = 0.015;
 /// fine cells are alike in mean brightness ([`fine_class_spread`] ≤ [`MAX_FINE_CLASS_SPREAD`]):
 /// a 4-end crowfoot's wefts have equal means but mirrored shading, so its profile repeats only at
 /// two wefts, while a yarn cut in two by the edges of its own crown puts bright and dark halves
-/// into alternate fine cells. The smallest such fraction wins. With [`Fractions::Linear`] the log
-/// profile is not consulted (see [`Fractions`] for where that matters).
+/// into alternate fine cells. A fraction is also taken where the yarn boundaries' valleys make a
+/// lattice there (`ValleyRepeat::confirms`), the edge energy repeats there and the profile does
+/// not anti-correlate there (random patterns, glossy crowns: see the loop); and a fraction is
+/// refused whatever the profile says where it is half a yarn by its valleys
+/// (`ValleyRepeat::half_a_yarn`) and the edges do not repeat there (a highlight line along each
+/// yarn). The smallest such fraction wins. With [`Fractions::Linear`] neither the log profile nor
+/// the valleys are consulted (see [`Fractions`] for where that matters).
 fn yarn_pitch(
     g: &Gray,
     axis_x: bool,
@@ -470,12 +476,18 @@ fn yarn_pitch(
         // warps under pink floats, 0.80), and a highlight along each yarn's crown puts edges half
         // a period off the boundaries' and cancels their fundamental (glossy purple warps: edge
         // fundamental 0.079 at their 10.7 px pitch, valley fundamental 0.78). The profile must
-        // not anti-correlate at the candidate (its highest local maximum there > 0): a yarn cut
-        // in two alternates bright and dark fine cells — back-lit gaps as wide as the yarns
-        // between them make a valley on either side of each gap, at half the pitch (−0.48 there).
-        // The edges' own lattice is kept where it is strong.
-        if let Some(v) = valleys.filter(|v| v.confirms() && divides(v.grid.0) && edges_repeat && peak > 0.0) {
-            best = if eg.2 >= MIN_EDGE_CONFIDENCE { (eg.0, eg) } else { (v.grid.0, v.grid) };
+        // not anti-correlate at the candidate (its highest local maximum there above −0.25): a
+        // yarn cut in two alternates bright and dark fine cells — back-lit gaps as wide as the
+        // yarns between them make a valley on either side of each gap, at half the pitch (−0.48
+        // there), while a random pattern's neighbouring yarns differ by their floats without
+        // alternating (−0.08 to 0.12 on the thin dark warps above, over 160–256 px crops).
+        if let Some(v) = valleys.filter(|v| v.confirms() && edges_repeat && peak > -0.25) {
+            // The edges' lattice where it is strong and divides the repeat, else the valleys'
+            // where they divide it (either search can wander a few per cent on few yarns).
+            let strong_edges = (eg.2 >= MIN_EDGE_CONFIDENCE).then_some(eg);
+            if let Some(l) = strong_edges.into_iter().chain([v.grid]).find(|l| divides(l.0)) {
+                best = (l.0, l);
+            }
         }
     }
     best
@@ -586,9 +598,10 @@ fn fine_class_spread(p: &[f64], q: f64, phase: f64, k: usize) -> f64 {
 /// the yarn pitch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Fractions {
-    /// The luminance profile or the log-luminance profile ([`log_profile`]): the preparation's
-    /// grid, on an image already rotated to its yarns, where paired dark yarns show their own
-    /// boundaries only as a relative drop.
+    /// The luminance profile or the log-luminance profile ([`log_profile`]), and the yarn
+    /// boundaries' valleys ([`valley_energy`]): the preparation's grid, on an image already
+    /// rotated to its yarns, where paired dark yarns show their own boundaries only as a relative
+    /// drop.
     LinearOrLog,
     /// The luminance profile only: for comparing rotation angles by their yarn boundaries
     /// (`rectify`'s edge-lattice score). Rotated off the yarns, a cloth's two-colour cell
@@ -926,6 +939,31 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A yarn boundary (a dark gap) is a valley, a specular highlight line is a ridge: only the
+    /// first counts in `valley_energy`, across either axis, and a dark band wider than `2r` (a
+    /// dark yarn of the other family) is no valley at all: its sides are steps.
+    #[test]
+    fn valley_energy_counts_dark_gaps_not_highlights() {
+        let (w, h) = (60, 4);
+        let mut g = Gray::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                g.data[y * w + x] = match x {
+                    10 => 0.05,     // gap
+                    30 => 2.0,      // highlight
+                    40..=52 => 0.1, // a dark band 13 px wide
+                    _ => 0.5,
+                };
+            }
+        }
+        let v = valley_energy(&g, true, 3);
+        assert!(v[10] > 0.5 * h as f64, "gap {}", v[10]);
+        assert_eq!(v[30], 0.0, "a highlight is not a valley");
+        assert!((0..w).filter(|&x| x != 10).all(|x| v[x] == 0.0), "only the gap is a valley: {v:?}");
+        // The same image transposed gives the same energy along y.
+        assert_eq!(valley_energy(&g.transposed(), false, 3), v);
+    }
 
     #[test]
     fn lattice_fit_with_missing_and_outlier_valleys() {
