@@ -423,3 +423,17 @@ fn a_highlight_line_along_each_weft_does_not_split_it_in_two() {
     assert_eq!((p.n_e, p.n_a), (4, 4), "pitch {}×{} px", p.pitch_x, p.pitch_y);
     assert!((p.pitch_y - 21.3).abs() < 0.8, "pitch {}×{} px", p.pitch_x, p.pitch_y);
 }
+
+/// A 2/2 twill rendered by Mitsuba 3 (principled material, a front light over grey; seed 1717,
+/// scene 02, the whole 256² render in grey): 32 px warps, 38.4 px wefts, 1.67 repeats along y.
+/// The 4-cell repeat along x is found; along y the 6.4 wefts in view hold 5 whole rows of cells,
+/// too few for a copy of 4 rows (`square_repeat`), and the old rule took the whole height (6×4).
+/// Each row of cells is its neighbour shifted by one cell, so the rows repeat after 4
+/// (`cells::CellMatrix::step_repeat`).
+#[test]
+fn a_twill_seen_less_than_twice_along_y_gets_its_repeat_from_the_step_between_rows() {
+    let p = prepared_crop("mitsuba_twill22_short_in_y.png");
+    assert_eq!((p.n_e, p.n_a), (4, 4), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    assert!(p.repeated_x && p.repeated_y);
+    assert!((p.period_y - 4.0 * 38.4).abs() < 3.0, "period_y {}", p.period_y);
+}
