@@ -435,36 +435,39 @@ fn yarn_pitch(
         let (llo, lhi) = ((0.88 * cand).ceil() as usize, (1.12 * cand).floor() as usize);
         let peak = highest_local_max(&ac, lo, hi).max(highest_local_max(&lac, llo.max(lo), lhi.min(hi)));
         let divides = |q: f64| (k as f64 * q / pitch_ac - 1.0).abs() <= FINE_DIVIDES_TOL;
-        // Whether the edge energy itself repeats at the candidate (not only has a fundamental
-        // there, which a coarser lattice's harmonic gives too).
-        let edges_repeat = edge_autocorr_peak(g, axis_x, eg.0) >= 0.25;
-        // The yarn boundaries' valleys (`ValleyRepeat`), looked at on the rectified image only.
-        let valleys = match fractions {
-            Fractions::LinearOrLog => Some(ValleyRepeat::at(g, axis_x, cand)),
-            Fractions::Linear => None,
-        };
-        // Half a yarn, whatever the profile says: the valleys repeat at twice the candidate and
-        // not at it, and the edges do not repeat at it either. A highlight line along each
-        // yarn's crown repeats at half the yarn pitch in the luminance profile (a Mitsuba render's
-        // glossy wefts: correlation 0.48 at 10.6 px, 0.10 at their 21.3 px pitch) and its two
-        // flanks give the edge energy a fundamental there; but a crown is a ridge, not a valley,
-        // and its edges are not the boundaries' (so the edge energy does not repeat there). Where
-        // the edges do repeat at the candidate, its lines are boundaries that make steps rather
-        // than valleys (flat carbon tows meeting, whose float ends are the only valleys).
-        if valleys.is_some_and(|v| v.half_a_yarn()) && !edges_repeat {
-            continue;
-        }
         if eg.2 < 0.6 * base.2 {
             continue;
         }
-        // Or the edge energy itself repeats at the candidate and the fine cells are alike in mean
-        // brightness (not a yarn cut in two: see `fine_class_spread`). A 4-end crowfoot's weft rows
+        // Whether the edge energy itself repeats at the candidate (not only has a fundamental
+        // there, which a coarser lattice's harmonic gives too); computed once, where needed.
+        let edges_repeat_at = std::cell::OnceCell::new();
+        let edges_repeat = || *edges_repeat_at.get_or_init(|| edge_autocorr_peak(g, axis_x, eg.0) >= 0.25);
+        // The yarn boundaries' valleys (`ValleyRepeat`), looked at on the rectified image only,
+        // and only where they decide (below).
+        let valleys = || match fractions {
+            Fractions::LinearOrLog => Some(ValleyRepeat::at(g, axis_x, cand)),
+            Fractions::Linear => None,
+        };
+        // Taken where the profile peaks near the candidate (`peak`, above), or where the edge energy
+        // itself repeats there and the fine cells are alike in mean brightness (not a yarn cut in
+        // two: see `fine_class_spread`). A 4-end crowfoot's weft rows
         // have the same mean but not the same profile, so its profile repeats only at two rows.
         // The fine lattice must also divide the repeat it came from: `k` fine pitches within
         // `FINE_DIVIDES_TOL` of `pitch_ac` (the edge pitch is searched ±12 % around the fraction;
         // one that wandered off it is another lattice, not this repeat's yarns).
-        let finer = || divides(eg.0) && edges_repeat && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD;
+        let finer = || divides(eg.0) && edges_repeat() && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD;
         if eg.2 >= MIN_EDGE_CONFIDENCE && (peak >= 0.25 || finer()) {
+            // Half a yarn, whatever the profile says: the valleys repeat at twice the candidate and
+            // not at it, and the edges do not repeat at it either. A highlight line along each
+            // yarn's crown repeats at half the yarn pitch in the luminance profile (a Mitsuba render's
+            // glossy wefts: correlation 0.48 at 10.6 px, 0.10 at their 21.3 px pitch) and its two
+            // flanks give the edge energy a fundamental there; but a crown is a ridge, not a valley,
+            // and its edges are not the boundaries' (so the edge energy does not repeat there). Where
+            // the edges do repeat at the candidate, its lines are boundaries that make steps rather
+            // than valleys (flat carbon tows meeting, whose float ends are the only valleys).
+            if !edges_repeat() && valleys().is_some_and(|v| v.half_a_yarn()) {
+                continue;
+            }
             best = (eg.0, eg);
             continue;
         }
@@ -481,7 +484,9 @@ fn yarn_pitch(
         // yarns between them make a valley on either side of each gap, at half the pitch (−0.48
         // there), while a random pattern's neighbouring yarns differ by their floats without
         // alternating (−0.08 to 0.12 on the thin dark warps above, over 160–256 px crops).
-        if let Some(v) = valleys.filter(|v| v.confirms() && edges_repeat && peak > -0.25) {
+        // (A lattice taken here is never half a yarn by the rule above: that needs the edges not to
+        // repeat at the candidate, this needs them to.)
+        if let Some(v) = (peak > -0.25 && edges_repeat()).then(valleys).flatten().filter(|v| v.confirms()) {
             // The edges' lattice where it is strong and divides the repeat, else the valleys'
             // where they divide it (either search can wander a few per cent on few yarns).
             let strong_edges = (eg.2 >= MIN_EDGE_CONFIDENCE).then_some(eg);
