@@ -378,3 +378,62 @@ fn a_satin_whose_profile_repeats_every_half_warp_gets_its_warp_pitch() {
     assert_eq!((p.n_e, p.n_a), (5, 5), "pitch {}×{} px", p.pitch_x, p.pitch_y);
     assert!((p.pitch_x - 10.2).abs() < 0.5 && (p.pitch_y - 10.2).abs() < 0.5, "pitch {}×{} px", p.pitch_x, p.pitch_y);
 }
+
+/// Prepares `tests/data/NAME` (a grey crop of a Mitsuba 3 render) with the default options.
+fn prepared_crop(name: &str) -> woven::prep::Prepared {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name);
+    let img = Image::load(&path, 32).unwrap();
+    prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap()
+}
+
+/// A random 4×3 weave rendered by Mitsuba 3 (principled material, an area light over white;
+/// `datagen/mitsuba/make_set.py --seed 1717`, scene 04, the central 176² of its 256² render in
+/// grey): thin dark blue warps 21.3 px apart under pink weft floats. Every warp floats a different
+/// number of times, so the column profile repeats only at the 3-warp repeat (its correlation near
+/// one warp is below 0.12) and the warps' mean brightness differs (class spread 0.79); the old rule
+/// took the repeat for one warp (4×2 grid, 67.9 px). The boundaries' valleys repeat at every warp
+/// (`grid::valley_energy`), and so does the edge energy.
+#[test]
+fn thin_dark_warps_of_a_random_weave_get_their_own_pitch() {
+    let p = prepared_crop("mitsuba_random4x3_dark_warps.png");
+    assert_eq!((p.n_e, p.n_a), (4, 3), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    assert!((p.pitch_x - 21.3).abs() < 0.6 && (p.pitch_y - 21.3).abs() < 0.6, "pitch {}×{} px", p.pitch_x, p.pitch_y);
+}
+
+/// A random 6×6 weave rendered by Mitsuba 3 (rough plastic, the four-light rig over grey; seed
+/// 1717, scene 09, the central 192² in grey): glossy purple warps 10.7 px apart with a highlight
+/// along each crown. The crowns' edges lie half a warp off the boundaries' and cancel the edge
+/// fundamental at the warp pitch (below `MIN_EDGE_CONFIDENCE`), so the old rule kept the 6-warp
+/// repeat's 63.8 px (6×3 grid); the valleys between the warps repeat at 10.7 px.
+#[test]
+fn glossy_warps_whose_crowns_cancel_the_edges_get_their_pitch_from_the_valleys() {
+    let p = prepared_crop("mitsuba_random6x6_glossy_warps.png");
+    assert_eq!((p.n_e, p.n_a), (6, 6), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    assert!((p.pitch_x - 10.7).abs() < 0.4 && (p.pitch_y - 8.05).abs() < 0.4, "pitch {}×{} px", p.pitch_x, p.pitch_y);
+}
+
+/// A random 4×4 weave rendered by Mitsuba 3 (rough plastic, an area light over white; seed 1717,
+/// scene 12, the central 208² in grey): wefts 21.3 px apart, each with a highlight line along its
+/// crown. The row profile repeats at half a weft (the highlight between two boundaries) and the
+/// edges have a fundamental there, so the old rule read 8 wefts of 10.6 px (8×4 grid); the
+/// valleys repeat at 21.3 px and not at 10.6, and the edge energy does not repeat at 10.6.
+#[test]
+fn a_highlight_line_along_each_weft_does_not_split_it_in_two() {
+    let p = prepared_crop("mitsuba_random4x4_weft_highlight.png");
+    assert_eq!((p.n_e, p.n_a), (4, 4), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    assert!((p.pitch_y - 21.3).abs() < 0.8, "pitch {}×{} px", p.pitch_x, p.pitch_y);
+}
+
+/// A 2/2 twill rendered by Mitsuba 3 (principled material, a front light over grey; seed 1717,
+/// scene 02, the whole 256² render in grey): 32 px warps, 38.4 px wefts, 1.67 repeats along y.
+/// The 4-cell repeat along x is found; along y the 6.4 wefts in view hold 5 whole rows of cells,
+/// too few for a copy of 4 rows (`square_repeat`), and the old rule took the whole height (6×4).
+/// Each row of cells is its neighbour shifted by one cell, so the rows repeat after 4
+/// (`cells::CellMatrix::step_repeat`).
+#[test]
+fn a_twill_seen_less_than_twice_along_y_gets_its_repeat_from_the_step_between_rows() {
+    let p = prepared_crop("mitsuba_twill22_short_in_y.png");
+    assert_eq!((p.n_e, p.n_a), (4, 4), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    assert!(p.repeated_x && p.repeated_y);
+    assert!((p.period_y - 4.0 * 38.4).abs() < 3.0, "period_y {}", p.period_y);
+}

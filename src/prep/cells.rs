@@ -261,6 +261,72 @@ impl CellMatrix {
         excess_over_median(&c, v, |s| s % n != 0).filter(|&e| e >= MIN_CELL_EXCESS).map(|_| v)
     }
 
+    /// The repeat along x (`axis_x`) or y in lines of cells, read from how each line is its
+    /// neighbour shifted by a constant step, where `n_other` is the repeat across the lines (along
+    /// the other axis); with the correlation at that step. Each line is a sequence of cells that
+    /// repeats every `n_other`; the step `s` (`0..n_other`) is the shift that maps every line onto
+    /// the next (pooled correlation ≥ [`MIN_CELL_CORR`], at least [`MIN_CELL_EXCESS`] above the
+    /// median of the other steps, and the best step of every pair of neighbouring lines). Line `r`
+    /// is then line 0 shifted by `r·s`, so the lines repeat after `n_other / gcd(n_other, s)`.
+    /// `None` for fewer than three lines, a step of 0 (neighbouring lines alike: nothing to read)
+    /// or lines that are not shifted copies (a basket's pairs, a random pattern).
+    ///
+    /// Why: twills and satins step their interlacing by a fixed number of yarns on every line.
+    /// With the pattern seen less than 1.5 times along an axis, neither [`Self::repeat`] nor
+    /// [`Self::square_repeat`] can see it (a 2/2 twill by Mitsuba 3 with 6.4 wefts in view holds
+    /// 5 whole rows of cells, one row of overlap for a shift of 4), but each pair of neighbouring
+    /// lines shows the step, and the 4-cell repeat across the rows fixes the rest.
+    pub fn step_repeat(&self, axis_x: bool, n_other: usize) -> Option<(usize, f64)> {
+        // Lines are columns for `axis_x` (the repeat along x is counted in columns), rows otherwise.
+        let (lines, len) = if axis_x { (self.cols, self.rows) } else { (self.rows, self.cols) };
+        if lines < 3 || n_other < 2 || len < n_other + 2 {
+            return None;
+        }
+        let at =
+            |line: usize, i: usize| if axis_x { self.o[i * self.cols + line] } else { self.o[line * self.cols + i] };
+        let pearson = |pairs: &[(f64, f64)]| -> f64 {
+            let m = pairs.len() as f64;
+            let (ma, mb) = pairs.iter().fold((0.0, 0.0), |(a, b), p| (a + p.0 / m, b + p.1 / m));
+            let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+            for &(x, y) in pairs {
+                sab += (x - ma) * (y - mb);
+                saa += (x - ma).powi(2);
+                sbb += (y - mb).powi(2);
+            }
+            if saa > 1e-12 && sbb > 1e-12 {
+                sab / (saa * sbb).sqrt()
+            } else {
+                f64::MIN
+            }
+        };
+        // Cell `i` of line `r` against cell `i + s` of line `r + 1`.
+        let pairs_of =
+            |r: usize, s: usize| -> Vec<(f64, f64)> { (0..len - s).map(|i| (at(r, i), at(r + 1, i + s))).collect() };
+        let pooled: Vec<f64> =
+            (0..n_other).map(|s| pearson(&(0..lines - 1).flat_map(|r| pairs_of(r, s)).collect::<Vec<_>>())).collect();
+        let step = (0..n_other).max_by(|&a, &b| pooled[a].total_cmp(&pooled[b]))?;
+        let v = pooled[step];
+        let others: Vec<(usize, f64)> = (0..n_other).filter(|&s| s != step).map(|s| (s, pooled[s])).collect();
+        if step == 0
+            || v < MIN_CELL_CORR
+            || excess_over_median(&others, v, |_| true).is_none_or(|e| e < MIN_CELL_EXCESS)
+        {
+            return None;
+        }
+        // Every pair of neighbouring lines must show the same step.
+        let every_pair = (0..lines - 1).all(|r| {
+            let c: Vec<f64> = (0..n_other).map(|s| pearson(&pairs_of(r, s))).collect();
+            (0..n_other).all(|s| s == step || c[s] < c[step])
+        });
+        let gcd = |mut a: usize, mut b: usize| {
+            while b != 0 {
+                (a, b) = (b, a % b);
+            }
+            a
+        };
+        every_pair.then(|| (n_other / gcd(n_other, step), v))
+    }
+
     /// The repeat among the shifts `c` (`(n, c(n))`) that is seen whole twice, by the rule of the
     /// module docs.
     fn whole_repeat(&self, axis_x: bool, c: &[(usize, f64)]) -> Option<(usize, f64)> {
@@ -360,6 +426,35 @@ mod tests {
                 let c2 = m.shift_corr(true, 2).unwrap();
                 assert!(c2 < 0.0, "twill shifted by two yarns: {c2}");
             }
+        }
+    }
+
+    /// A twill 2/2 and a satin 8 seen in 5 rows of cells: too few to see the repeat along y even
+    /// 1.5 times (`square_repeat` refuses), but each row is its neighbour shifted by the weave's
+    /// step (1 and 3 cells), so the rows repeat after 4 and 8 lines; along x the same from the
+    /// columns. A basket's rows (pairs alike, then shifted by 2) have no constant step, nor do a
+    /// random figure's.
+    #[test]
+    fn the_repeat_across_few_lines_comes_from_the_step_between_them() {
+        let short = |p: &[Vec<u8>], w: u32, h: u32| {
+            let g = Gray::from_rgb(&render_flat(p, 16.0, w, h));
+            cell_matrix(&g, [16.0, 16.0], [0.0, 0.0]).unwrap()
+        };
+        for (name, p, n) in [("twill", twill22(), 4), ("satin 8", satin8(), 8)] {
+            let m = short(&p, 16 * 2 * n as u32 + 8, 88);
+            assert_eq!(m.rows, 5, "{name}");
+            assert_eq!(m.square_repeat(false, n), None, "{name}: too short for a copy");
+            let r = m.step_repeat(false, n);
+            assert_eq!(r.map(|r| r.0), Some(n), "{name}: {r:?}");
+            let t = short(&p, 88, 16 * 2 * n as u32 + 8);
+            assert_eq!(t.step_repeat(true, n).map(|r| r.0), Some(n), "{name} along x");
+        }
+        assert_eq!(short(&basket2(), 136, 88).step_repeat(false, 4), None, "basket");
+        use rand::prelude::*;
+        for seed in 0..8 {
+            let mut rng = StdRng::seed_from_u64(seed);
+            let p: Vec<Vec<u8>> = (0..6).map(|_| (0..6).map(|_| rng.random_range(0..2u8)).collect()).collect();
+            assert_eq!(short(&p, 200, 88).step_repeat(false, 6), None, "random seed {seed}");
         }
     }
 

@@ -208,6 +208,106 @@ fn log_floor(g: &Gray) -> f64 {
     (0.02 * mean).max(1e-6)
 }
 
+/// Valley energy across `axis_x`: `v[i] = Σ max(0, min(max L[i−r..=i], max L[i..=i+r]) − L[i])`
+/// over the lines across the axis (rows for `axis_x`), `L = log(g + ε)` as in [`edge_energy`];
+/// `v[i]` sits at pixel `i`. A sample counts by how far it lies below the brighter of its
+/// surroundings on *both* sides within `r` pixels: the depth of a dark valley narrower than `2r`.
+///
+/// Why: every yarn boundary is a valley across the yarns — the gap between two tubes, or the
+/// shadowed flanks where they meet — while a yarn's crown, diffuse or specular, is a ridge. The
+/// edge energy counts both alike (a highlight line along each yarn's crown has an edge on either
+/// side), so on glossy yarns it repeats at half the yarn pitch, or its fundamental at the yarn
+/// pitch is cancelled by the crowns' edges half a period off (see `ValleyRepeat`). A dark
+/// yarn of the other family wider than `2r` is no valley (its sides are steps); the gaps at its
+/// sides are.
+pub fn valley_energy(g: &Gray, axis_x: bool, r: usize) -> Vec<f64> {
+    let eps = log_floor(g);
+    let t;
+    let lines = if axis_x {
+        g
+    } else {
+        t = g.transposed();
+        &t
+    };
+    let n = lines.w;
+    let mut v = vec![0.0f64; n];
+    let r = r.max(1);
+    let mut l = vec![0.0f64; n];
+    for row in lines.data.chunks(n) {
+        l.iter_mut().zip(row).for_each(|(a, &b)| *a = ((b as f64).max(0.0) + eps).ln());
+        let left = trailing_max(&l, r);
+        let mut rev: Vec<f64> = l.iter().rev().cloned().collect();
+        rev = trailing_max(&rev, r);
+        for (i, vi) in v.iter_mut().enumerate() {
+            *vi += (left[i].min(rev[n - 1 - i]) - l[i]).max(0.0);
+        }
+    }
+    v
+}
+
+/// `out[i] = max(x[i−r..=i])` (the window clipped at 0), by a monotone queue in O(n).
+fn trailing_max(x: &[f64], r: usize) -> Vec<f64> {
+    let mut q: std::collections::VecDeque<usize> = std::collections::VecDeque::new();
+    let mut out = Vec::with_capacity(x.len());
+    for (i, &xi) in x.iter().enumerate() {
+        while q.back().is_some_and(|&j| x[j] <= xi) {
+            q.pop_back();
+        }
+        q.push_back(i);
+        while q.front().is_some_and(|&j| j + r < i) {
+            q.pop_front();
+        }
+        out.push(x[q[0]]);
+    }
+    out
+}
+
+/// Smallest autocorrelation of the valley energy at a candidate pitch for `ValleyRepeat` to
+/// confirm it (and at twice the candidate for it to call the candidate half a yarn).
+pub const MIN_VALLEY_REPEAT: f64 = 0.4;
+/// Smallest relative amplitude of the valley energy's fundamental for `ValleyRepeat` to
+/// confirm a pitch (the edges' floor is [`MIN_EDGE_CONFIDENCE`]; valleys are sparser than edges,
+/// so a lattice of valleys has a stronger fundamental: 0.3–0.8 on the renders where it decides).
+pub const MIN_VALLEY_CONF: f64 = 0.25;
+
+/// How the yarn-boundary valleys ([`valley_energy`], with `r` a quarter of the candidate pitch)
+/// repeat at a candidate pitch `q`.
+#[derive(Clone, Copy, Debug)]
+struct ValleyRepeat {
+    /// The valley energy's strongest fundamental within ±12 % of the candidate: (pitch, phase of
+    /// the boundaries, relative amplitude).
+    grid: (f64, f64, f64),
+    /// Highest local maximum of the valley energy's autocorrelation within ±10 % of `grid.0`.
+    at_q: f64,
+    /// The same within ±10 % of `2 · grid.0`.
+    at_2q: f64,
+}
+
+impl ValleyRepeat {
+    fn at(g: &Gray, axis_x: bool, cand: f64) -> Self {
+        let mut v = valley_energy(g, axis_x, (cand / 4.0).round() as usize);
+        let (pitch, phase, conf) = strongest_fundamental(&v, cand);
+        // `fundamental` places sample `i` at `i + 0.5` (edge energy); a valley sample is at `i`.
+        let grid = (pitch, (phase - 0.5).rem_euclid(pitch), conf);
+        detrend(&mut v);
+        let ac = autocorr(&v, v.len() / 2);
+        let near = |lag: f64| highest_local_max(&ac, (0.9 * lag).floor() as usize, (1.1 * lag).ceil() as usize);
+        ValleyRepeat { grid, at_q: near(pitch), at_2q: near(2.0 * pitch) }
+    }
+
+    /// Half a yarn: the valleys repeat at twice the candidate and not at it — every other line of
+    /// the fine lattice is a ridge (a crown, a highlight line along it), not a boundary.
+    fn half_a_yarn(&self) -> bool {
+        self.at_2q >= MIN_VALLEY_REPEAT && self.at_q < 0.5 * self.at_2q
+    }
+
+    /// The valleys make a lattice at the candidate: they repeat there and their fundamental is
+    /// strong.
+    fn confirms(&self) -> bool {
+        self.at_q >= MIN_VALLEY_REPEAT && self.grid.2 >= MIN_VALLEY_CONF
+    }
+}
+
 /// Fundamental of `e` at `pitch` over whole periods: (phase in `[0, pitch)` of its maximum,
 /// relative amplitude `|E₁| / E₀`).
 fn fundamental(e: &[f64], pitch: f64) -> (f64, f64) {
@@ -234,9 +334,14 @@ fn fundamental(e: &[f64], pitch: f64) -> (f64, f64) {
 /// that fundamental's maximum, the confidence its relative amplitude `|E₁| / E₀` (0 without edges).
 /// Positions are in the profile's index units (pixel `i` at `i`), like the valleys.
 pub fn edge_grid(g: &Gray, axis_x: bool, pitch0: f64) -> (f64, f64, f64) {
-    let e = edge_energy(g, axis_x);
-    let amp = |p: f64| fundamental(&e, p).1;
-    // Grid search then a parabola through the best three samples.
+    strongest_fundamental(&edge_energy(g, axis_x), pitch0)
+}
+
+/// The strongest fundamental of `e` (an energy that peaks at the yarn boundaries) within ±12 % of
+/// `pitch0`: (pitch, phase of its maximum, relative amplitude). A grid search, then a parabola
+/// through the best three samples.
+fn strongest_fundamental(e: &[f64], pitch0: f64) -> (f64, f64, f64) {
+    let amp = |p: f64| fundamental(e, p).1;
     let steps = 48;
     let at = |k: usize| pitch0 * (0.88 + 0.24 * k as f64 / steps as f64);
     let amps: Vec<f64> = (0..=steps).map(|k| amp(at(k))).collect();
@@ -246,7 +351,7 @@ pub fn edge_grid(g: &Gray, axis_x: bool, pitch0: f64) -> (f64, f64, f64) {
     } else {
         at(k)
     };
-    let (phase, conf) = fundamental(&e, pitch);
+    let (phase, conf) = fundamental(e, pitch);
     (pitch, phase, conf)
 }
 
@@ -290,8 +395,13 @@ pub const FINE_DIVIDES_TOL: f64 = 0.015;
 /// fine cells are alike in mean brightness ([`fine_class_spread`] ≤ [`MAX_FINE_CLASS_SPREAD`]):
 /// a 4-end crowfoot's wefts have equal means but mirrored shading, so its profile repeats only at
 /// two wefts, while a yarn cut in two by the edges of its own crown puts bright and dark halves
-/// into alternate fine cells. The smallest such fraction wins. With [`Fractions::Linear`] the log
-/// profile is not consulted (see [`Fractions`] for where that matters).
+/// into alternate fine cells. A fraction is also taken where the yarn boundaries' valleys make a
+/// lattice there (`ValleyRepeat::confirms`), the edge energy repeats there and the profile does
+/// not anti-correlate there (random patterns, glossy crowns: see the loop); and a fraction is
+/// refused whatever the profile says where it is half a yarn by its valleys
+/// (`ValleyRepeat::half_a_yarn`) and the edges do not repeat there (a highlight line along each
+/// yarn). The smallest such fraction wins. With [`Fractions::Linear`] neither the log profile nor
+/// the valleys are consulted (see [`Fractions`] for where that matters).
 fn yarn_pitch(
     g: &Gray,
     axis_x: bool,
@@ -324,22 +434,65 @@ fn yarn_pitch(
         // over 7 or 8 yarns) claim the peak of the right one (6 yarns of 10.7 px).
         let (llo, lhi) = ((0.88 * cand).ceil() as usize, (1.12 * cand).floor() as usize);
         let peak = highest_local_max(&ac, lo, hi).max(highest_local_max(&lac, llo.max(lo), lhi.min(hi)));
-        if eg.2 < MIN_EDGE_CONFIDENCE || eg.2 < 0.6 * base.2 {
+        let divides = |q: f64| (k as f64 * q / pitch_ac - 1.0).abs() <= FINE_DIVIDES_TOL;
+        if eg.2 < 0.6 * base.2 {
             continue;
         }
-        // Or the edge energy itself repeats at the candidate and the fine cells are alike in mean
-        // brightness (not a yarn cut in two: see `fine_class_spread`). A 4-end crowfoot's weft rows
+        // Whether the edge energy itself repeats at the candidate (not only has a fundamental
+        // there, which a coarser lattice's harmonic gives too); computed once, where needed.
+        let edges_repeat_at = std::cell::OnceCell::new();
+        let edges_repeat = || *edges_repeat_at.get_or_init(|| edge_autocorr_peak(g, axis_x, eg.0) >= 0.25);
+        // The yarn boundaries' valleys (`ValleyRepeat`), looked at on the rectified image only,
+        // and only where they decide (below).
+        let valleys = || match fractions {
+            Fractions::LinearOrLog => Some(ValleyRepeat::at(g, axis_x, cand)),
+            Fractions::Linear => None,
+        };
+        // Taken where the profile peaks near the candidate (`peak`, above), or where the edge energy
+        // itself repeats there and the fine cells are alike in mean brightness (not a yarn cut in
+        // two: see `fine_class_spread`). A 4-end crowfoot's weft rows
         // have the same mean but not the same profile, so its profile repeats only at two rows.
         // The fine lattice must also divide the repeat it came from: `k` fine pitches within
         // `FINE_DIVIDES_TOL` of `pitch_ac` (the edge pitch is searched ±12 % around the fraction;
         // one that wandered off it is another lattice, not this repeat's yarns).
-        let finer = || {
-            (k as f64 * eg.0 / pitch_ac - 1.0).abs() <= FINE_DIVIDES_TOL
-                && edge_autocorr_peak(g, axis_x, eg.0) >= 0.25
-                && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD
-        };
-        if peak >= 0.25 || finer() {
+        let finer = || divides(eg.0) && edges_repeat() && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD;
+        if eg.2 >= MIN_EDGE_CONFIDENCE && (peak >= 0.25 || finer()) {
+            // Half a yarn, whatever the profile says: the valleys repeat at twice the candidate and
+            // not at it, and the edges do not repeat at it either. A highlight line along each
+            // yarn's crown repeats at half the yarn pitch in the luminance profile (a Mitsuba render's
+            // glossy wefts: correlation 0.48 at 10.6 px, 0.10 at their 21.3 px pitch) and its two
+            // flanks give the edge energy a fundamental there; but a crown is a ridge, not a valley,
+            // and its edges are not the boundaries' (so the edge energy does not repeat there). Where
+            // the edges do repeat at the candidate, its lines are boundaries that make steps rather
+            // than valleys (flat carbon tows meeting, whose float ends are the only valleys).
+            if !edges_repeat() && valleys().is_some_and(|v| v.half_a_yarn()) {
+                continue;
+            }
             best = (eg.0, eg);
+            continue;
+        }
+        // Or the boundaries' valleys make a lattice at the candidate that divides the repeat
+        // (`ValleyRepeat::confirms`), the edges repeat there too, and the profile does not
+        // contradict it. This reaches the yarns that neither the profile nor the edges show
+        // alone: a random pattern's yarns differ in mean brightness by their floats (so its
+        // profile repeats only at the whole repeat, and `fine_class_spread` is high: thin dark
+        // warps under pink floats, 0.80), and a highlight along each yarn's crown puts edges half
+        // a period off the boundaries' and cancels their fundamental (glossy purple warps: edge
+        // fundamental 0.079 at their 10.7 px pitch, valley fundamental 0.78). The profile must
+        // not anti-correlate at the candidate (its highest local maximum there above −0.25): a
+        // yarn cut in two alternates bright and dark fine cells — back-lit gaps as wide as the
+        // yarns between them make a valley on either side of each gap, at half the pitch (−0.48
+        // there), while a random pattern's neighbouring yarns differ by their floats without
+        // alternating (−0.08 to 0.12 on the thin dark warps above, over 160–256 px crops).
+        // (A lattice taken here is never half a yarn by the rule above: that needs the edges not to
+        // repeat at the candidate, this needs them to.)
+        if let Some(v) = (peak > -0.25 && edges_repeat()).then(valleys).flatten().filter(|v| v.confirms()) {
+            // The edges' lattice where it is strong and divides the repeat, else the valleys'
+            // where they divide it (either search can wander a few per cent on few yarns).
+            let strong_edges = (eg.2 >= MIN_EDGE_CONFIDENCE).then_some(eg);
+            if let Some(l) = strong_edges.into_iter().chain([v.grid]).find(|l| divides(l.0)) {
+                best = (l.0, l);
+            }
         }
     }
     best
@@ -450,9 +603,10 @@ fn fine_class_spread(p: &[f64], q: f64, phase: f64, k: usize) -> f64 {
 /// the yarn pitch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Fractions {
-    /// The luminance profile or the log-luminance profile ([`log_profile`]): the preparation's
-    /// grid, on an image already rotated to its yarns, where paired dark yarns show their own
-    /// boundaries only as a relative drop.
+    /// The luminance profile or the log-luminance profile ([`log_profile`]), and the yarn
+    /// boundaries' valleys ([`valley_energy`]): the preparation's grid, on an image already
+    /// rotated to its yarns, where paired dark yarns show their own boundaries only as a relative
+    /// drop.
     LinearOrLog,
     /// The luminance profile only: for comparing rotation angles by their yarn boundaries
     /// (`rectify`'s edge-lattice score). Rotated off the yarns, a cloth's two-colour cell
@@ -790,6 +944,31 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A yarn boundary (a dark gap) is a valley, a specular highlight line is a ridge: only the
+    /// first counts in `valley_energy`, across either axis, and a dark band wider than `2r` (a
+    /// dark yarn of the other family) is no valley at all: its sides are steps.
+    #[test]
+    fn valley_energy_counts_dark_gaps_not_highlights() {
+        let (w, h) = (60, 4);
+        let mut g = Gray::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                g.data[y * w + x] = match x {
+                    10 => 0.05,     // gap
+                    30 => 2.0,      // highlight
+                    40..=52 => 0.1, // a dark band 13 px wide
+                    _ => 0.5,
+                };
+            }
+        }
+        let v = valley_energy(&g, true, 3);
+        assert!(v[10] > 0.5 * h as f64, "gap {}", v[10]);
+        assert_eq!(v[30], 0.0, "a highlight is not a valley");
+        assert!((0..w).filter(|&x| x != 10).all(|x| v[x] == 0.0), "only the gap is a valley: {v:?}");
+        // The same image transposed gives the same energy along y.
+        assert_eq!(valley_energy(&g.transposed(), false, 3), v);
+    }
 
     #[test]
     fn lattice_fit_with_missing_and_outlier_valleys() {

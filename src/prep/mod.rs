@@ -430,7 +430,10 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
                 continue;
             }
             if let Some(n) = n_other {
-                if let Some(c) = m.square_repeat(axis_x, n) {
+                // Or the step from line to line of a twill or satin, which needs no copy of the
+                // whole repeat in view (`cells::CellMatrix::step_repeat`).
+                let found = m.square_repeat(axis_x, n).map(|c| (n, c)).or_else(|| m.step_repeat(axis_x, n));
+                if let Some((n, c)) = found {
                     *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
                     n_cells[k] = Some(n);
                 }
