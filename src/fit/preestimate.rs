@@ -80,11 +80,15 @@ pub(crate) fn pre_estimate(
     let (stop, c) = (&*st.control.stop, st.render.px_per_cell);
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
     let cp = if opts.px_per_cell == 0 { c } else { opts.px_per_cell };
-    let pre_scene = Scene {
-        exposure: st.ev.scene().exposure,
-        ..fit_scene(n_e, n_a, cp, opts.spp, st.render.seed, &st.render.lights)
+    // The pre-estimation's view of the crop at `px` pixels per cell, at the fit's exposure.
+    let view = |px: u32| {
+        let scene = Scene {
+            exposure: st.ev.scene().exposure,
+            ..fit_scene(n_e, n_a, px, opts.spp, st.render.seed, &st.render.lights)
+        };
+        st.ev.sibling(scene, resample(crop, n_a as u32 * px, n_e as u32 * px), st.render.loss_block)
     };
-    let pre_ev = st.ev.sibling(pre_scene, resample(crop, n_a as u32 * cp, n_e as u32 * cp), st.render.loss_block);
+    let pre_ev = view(cp);
     // The shape scans' view: the ranking's unless asked coarser (`PreOptions::scan_px_per_cell`).
     let sp = match opts.scan_px_per_cell {
         0 => cp,
@@ -94,11 +98,7 @@ pub(crate) fn pre_estimate(
     let scan_ev = if sp == cp {
         &pre_ev
     } else {
-        let scene = Scene {
-            exposure: st.ev.scene().exposure,
-            ..fit_scene(n_e, n_a, sp, opts.spp, st.render.seed, &st.render.lights)
-        };
-        coarse_scan = st.ev.sibling(scene, resample(crop, n_a as u32 * sp, n_e as u32 * sp), st.render.loss_block);
+        coarse_scan = view(sp);
         &coarse_scan
     };
     let shortlist = if st.cells {
