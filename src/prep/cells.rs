@@ -193,22 +193,11 @@ impl CellMatrix {
             return None;
         }
         let at = |i: usize, j: usize| if axis_x { self.o[j * self.cols + i] } else { self.o[i * self.cols + j] };
-        let (mut a, mut b) = (Vec::new(), Vec::new());
-        for j in 0..across {
-            for i in 0..along - n {
-                a.push(at(i, j));
-                b.push(at(i + n, j));
-            }
-        }
-        let m = a.len() as f64;
-        let (ma, mb) = (a.iter().sum::<f64>() / m, b.iter().sum::<f64>() / m);
-        let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
-        for (x, y) in a.iter().zip(&b) {
-            sab += (x - ma) * (y - mb);
-            saa += (x - ma).powi(2);
-            sbb += (y - mb).powi(2);
-        }
-        (saa > 1e-12 && sbb > 1e-12).then(|| sab / (saa * sbb).sqrt())
+        let pairs: Vec<(f64, f64)> = (0..across)
+            .flat_map(|j| (0..along - n).map(move |i| (i, j)))
+            .map(|(i, j)| (at(i, j), at(i + n, j)))
+            .collect();
+        pearson(&pairs)
     }
 
     /// The correlations `(n, c(n))` of the shifts up to `max_n` along x (`axis_x`) or y.
@@ -284,26 +273,13 @@ impl CellMatrix {
         }
         let at =
             |line: usize, i: usize| if axis_x { self.o[i * self.cols + line] } else { self.o[line * self.cols + i] };
-        let pearson = |pairs: &[(f64, f64)]| -> f64 {
-            let m = pairs.len() as f64;
-            let (ma, mb) = pairs.iter().fold((0.0, 0.0), |(a, b), p| (a + p.0 / m, b + p.1 / m));
-            let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
-            for &(x, y) in pairs {
-                sab += (x - ma) * (y - mb);
-                saa += (x - ma).powi(2);
-                sbb += (y - mb).powi(2);
-            }
-            if saa > 1e-12 && sbb > 1e-12 {
-                sab / (saa * sbb).sqrt()
-            } else {
-                f64::MIN
-            }
-        };
+        // Degenerate (constant) lines correlate with nothing.
+        let corr = |pairs: &[(f64, f64)]| pearson(pairs).unwrap_or(f64::MIN);
         // Cell `i` of line `r` against cell `i + s` of line `r + 1`.
         let pairs_of =
             |r: usize, s: usize| -> Vec<(f64, f64)> { (0..len - s).map(|i| (at(r, i), at(r + 1, i + s))).collect() };
         let pooled: Vec<f64> =
-            (0..n_other).map(|s| pearson(&(0..lines - 1).flat_map(|r| pairs_of(r, s)).collect::<Vec<_>>())).collect();
+            (0..n_other).map(|s| corr(&(0..lines - 1).flat_map(|r| pairs_of(r, s)).collect::<Vec<_>>())).collect();
         let step = (0..n_other).max_by(|&a, &b| pooled[a].total_cmp(&pooled[b]))?;
         let v = pooled[step];
         let others: Vec<(usize, f64)> = (0..n_other).filter(|&s| s != step).map(|s| (s, pooled[s])).collect();
@@ -315,7 +291,7 @@ impl CellMatrix {
         }
         // Every pair of neighbouring lines must show the same step.
         let every_pair = (0..lines - 1).all(|r| {
-            let c: Vec<f64> = (0..n_other).map(|s| pearson(&pairs_of(r, s))).collect();
+            let c: Vec<f64> = (0..n_other).map(|s| corr(&pairs_of(r, s))).collect();
             (0..n_other).all(|s| s == step || c[s] < c[step])
         });
         let gcd = |mut a: usize, mut b: usize| {
@@ -391,6 +367,21 @@ impl CellMatrix {
         }
         None
     }
+}
+
+/// Pearson correlation of the pairs `(x, y)`; `None` when either side is constant (variance
+/// ≤ 1e-12) or there are no pairs.
+fn pearson(pairs: &[(f64, f64)]) -> Option<f64> {
+    let m = pairs.len() as f64;
+    let ma = pairs.iter().map(|p| p.0).sum::<f64>() / m;
+    let mb = pairs.iter().map(|p| p.1).sum::<f64>() / m;
+    let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+    for &(x, y) in pairs {
+        sab += (x - ma) * (y - mb);
+        saa += (x - ma).powi(2);
+        sbb += (y - mb).powi(2);
+    }
+    (saa > 1e-12 && sbb > 1e-12).then(|| sab / (saa * sbb).sqrt())
 }
 
 /// How far the correlation `v` of a shift stands above the median correlation of the shifts
