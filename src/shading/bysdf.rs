@@ -196,21 +196,94 @@ impl<T: Real> VertexTerms<T> {
             VertexKind::X => (p.alpha, p.eta, p.t_s),
             VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
         };
-        // Energy the specular reflection leaves enters the yarn; what the specular transmission
-        // does not carry feeds the body lobes. The reflection takes the macro-surface Fresnel
-        // fraction F(c_v), or its rough lobe's albedo E_R where that is more (seen from inside,
-        // tilted microfacets past the critical angle): then E_R + (1 − E_R)·body ≤ 1. Outside,
-        // E_R ≤ F (masking), and F keeps the images the model was trained on.
-        let eta_in = if v.z > 0.0 { eta } else { T::c(1.0) / eta };
-        let f = fresnel(T::c(v.z.abs()), eta_in);
-        let e_r = reflect_albedo(v.z.abs(), alpha, eta_in);
-        let enter = if e_r.v() > f.v() { e_r } else { f }.one_minus();
+        let enter = entering(v.z, alpha, eta);
         let shadow = shadow_factor(p.g_p, ao_p) * shadow_factor(p.g_f, ao_f);
         let base = t_col.map(|t| enter * t.one_minus() * shadow);
         VertexTerms {
             refl: std::array::from_fn(|k| base[k] * p.m_r),
             trans: std::array::from_fn(|k| base[k] * p.m_r.one_minus() * p.s_b[fam][k] * (1.0 / PI)),
         }
+    }
+}
+
+/// The fraction of the light arriving at a vertex seen from local direction `v` (`v_z` its cosine
+/// against the fiber normal, signed: > 0 outside) that enters the yarn and is not specularly
+/// reflected, `1 − max(F(c_v), E_R(c_v, α, η))`, with the vertex kind's roughness `alpha` and IOR
+/// `eta`. Energy the specular reflection leaves enters the yarn; what the specular transmission
+/// does not carry feeds the body lobes ([`VertexTerms`]). The reflection takes the macro-surface
+/// Fresnel fraction F(c_v), or its rough lobe's albedo E_R where that is more (seen from inside,
+/// tilted microfacets past the critical angle): then E_R + (1 − E_R)·body ≤ 1. Outside, E_R ≤ F
+/// (masking), and F keeps the images the model was trained on. Depends on `α^S`, `η^S` only, so
+/// the re-shading gradient evaluates it in 2-partial dual numbers (`render::shade`).
+pub fn entering<T: Real>(v_z: f32, alpha: T, eta: T) -> T {
+    let eta_in = if v_z > 0.0 { eta } else { T::c(1.0) / eta };
+    let f = fresnel(T::c(v_z.abs()), eta_in);
+    let e_r = reflect_albedo(v_z.abs(), alpha, eta_in);
+    if e_r.v() > f.v() { e_r } else { f }.one_minus()
+}
+
+/// What one light sample contributes to a vertex's lobes, split into the factors that do not
+/// depend on the colours: the BYSDF is linear in `R^S`, `T^S`, the body colours and `m_r` once
+/// the direction-dependent terms are known, so [`eval_with`] multiplies these by the colours, and
+/// the re-shading gradient sums them over a vertex's light samples and multiplies by the colours
+/// once per vertex (`render::shade`: the GGX terms, which depend on `α^S` and `η^S` only, are
+/// then 2-partial dual numbers instead of carrying every partial of the vertex).
+#[derive(Clone, Copy, Debug)]
+pub enum LightTerms<T: Real> {
+    /// No contribution: a direction in the tangent plane, or not finite.
+    Nothing,
+    /// The light is on the side of the view. `spec`: the specular reflection `reflect_cos` of eq.
+    /// (1), which `R^S` multiplies (zero at y, which has no reflection lobe, eq. 2); the body
+    /// reflection of eq. (3) is `refl·(R^B·diffusion + α'·single)·cl` with the mixture weights
+    /// `diffusion = (1 − w)/π` and `single = w·LS` (ambiguity 9) and `cl = |c_l|`.
+    Reflect {
+        /// `reflect_cos` (x), or 0 (y).
+        spec: T,
+        /// `(1 − w)/π`.
+        diffusion: f32,
+        /// `w·LS`.
+        single: f32,
+        /// `|c_l|`.
+        cl: f32,
+    },
+    /// The light is on the other side. `spec`: the specular transmission `transmit_cos` of eq.
+    /// (1)–(2), which the kind's `T^S` colour multiplies; the body transmission of eq. (4) is
+    /// `trans·cl`.
+    Transmit {
+        /// `transmit_cos`.
+        spec: T,
+        /// `|c_l|`.
+        cl: f32,
+    },
+}
+
+/// The [`LightTerms`] of a light sample at a vertex of `kind` with the kind's roughness `alpha`
+/// and IOR `eta` (clamped as in [`ShadeParams`]).
+pub fn light_terms<T: Real>(kind: VertexKind, dirs: LocalDirs, alpha: T, eta: T) -> LightTerms<T> {
+    let LocalDirs { v, l } = dirs;
+    if v.z == 0.0 || l.z == 0.0 || !v.is_finite() || !l.is_finite() {
+        return LightTerms::Nothing;
+    }
+    let cl = l.z.abs();
+    if v.z * l.z > 0.0 {
+        // Specular: eq. (1) at x (reflection R^S); eq. (2) at y has transmission only.
+        let spec = if kind == VertexKind::X {
+            let eta_ratio = if v.z > 0.0 { eta } else { T::c(1.0) / eta };
+            reflect_cos(v, l, alpha, eta_ratio)
+        } else {
+            T::c(0.0)
+        };
+        // Eq. (3): m_r·G_p·G_f·R^B·[LS + 1/π], as a per-point mix (ambiguity 9) so its albedo ≤ 1.
+        // Diffusion dominates where light and view are head-on (deep penetration, multiple
+        // scattering); Lommel–Seeliger single scattering takes over towards grazing, where it gives
+        // its characteristic brightening. (The reference code weights the other way round, which
+        // makes a white yarn seen head-on 7× darker than a Lambertian one.)
+        let cv = v.z.abs();
+        let w = 1.0 - ((cv + cl) * 0.5).clamp(0.0, 1.0);
+        let ls = 1.0 / (4.0 * PI * (cv + cl));
+        LightTerms::Reflect { spec, diffusion: (1.0 - w) / PI, single: w * ls, cl }
+    } else {
+        LightTerms::Transmit { spec: transmit_cos(v, l, alpha, eta), cl }
     }
 }
 
@@ -242,49 +315,24 @@ pub fn eval_with<T: Real>(
     dirs: LocalDirs,
     pre: &VertexTerms<T>,
 ) -> Lobes<T> {
-    let LocalDirs { v, l } = dirs;
     let zero = [T::c(0.0); 3];
-    if v.z == 0.0 || l.z == 0.0 || !v.is_finite() || !l.is_finite() {
-        return Lobes { spec: zero, body: zero };
-    }
     let fam = family_index(family);
     let (alpha, eta, t_col) = match kind {
         VertexKind::X => (p.alpha, p.eta, p.t_s),
         VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
     };
-    let same_side = v.z * l.z > 0.0;
-    let cl = l.z.abs();
-    let cv = v.z.abs();
-    // Specular: eq. (1) at x (reflection R^S, transmission T^S); eq. (2) at y (transmission only).
-    let spec = if same_side {
-        if kind == VertexKind::X {
-            let eta_ratio = if v.z > 0.0 { eta } else { T::c(1.0) / eta };
-            let r = reflect_cos(v, l, alpha, eta_ratio);
-            p.r_s.map(|c| c * r)
-        } else {
-            zero
-        }
-    } else {
-        let t = transmit_cos(v, l, alpha, eta);
-        t_col.map(|c| c * t)
-    };
-    let body = if same_side {
-        // Eq. (3): m_r·G_p·G_f·R^B·[LS + 1/π], as a per-point mix (ambiguity 9) so its albedo ≤ 1.
-        // Diffusion dominates where light and view are head-on (deep penetration, multiple
-        // scattering); Lommel–Seeliger single scattering takes over towards grazing, where it gives its
-        // characteristic brightening. (The reference code weights the other way round, which makes a
-        // white yarn seen head-on 7× darker than a Lambertian one.)
-        let w = 1.0 - ((cv + cl) * 0.5).clamp(0.0, 1.0);
-        let ls = 1.0 / (4.0 * PI * (cv + cl));
-        std::array::from_fn(|k| {
-            let lobe = p.r_b[fam][k] * ((1.0 - w) / PI) + p.albedo_ls[fam][k] * (w * ls);
-            pre.refl[k] * lobe * cl
-        })
-    } else {
+    match light_terms(kind, dirs, alpha, eta) {
+        LightTerms::Nothing => Lobes { spec: zero, body: zero },
+        LightTerms::Reflect { spec, diffusion, single, cl } => Lobes {
+            spec: if kind == VertexKind::X { p.r_s.map(|c| c * spec) } else { zero },
+            body: std::array::from_fn(|k| {
+                let lobe = p.r_b[fam][k] * diffusion + p.albedo_ls[fam][k] * single;
+                pre.refl[k] * lobe * cl
+            }),
+        },
         // Eq. (4): (1 − m_r)·G_p·G_f·S^B/π.
-        pre.trans.map(|t| t * cl)
-    };
-    Lobes { spec, body }
+        LightTerms::Transmit { spec, cl } => Lobes { spec: t_col.map(|c| c * spec), body: pre.trans.map(|t| t * cl) },
+    }
 }
 
 /// Beer–Lambert attenuation `τ(x, y, A)^{N_i} = exp(−A·‖y − x‖·N_i)` (docs/design.md §1.5, ambiguity 7).
