@@ -99,6 +99,10 @@ pub struct PreOptions {
     /// with the same pattern, but the Mitsuba twill d03 came back with 1 ply at 27.6 dB instead of
     /// 29.8 dB (docs/benchmarks.md, session 18): the ply stripes and lobes need the pixels.
     pub scan_px_per_cell: u32,
+    /// Pixels per cell of the shape scans' radius grids (the common radius and each family's;
+    /// 0: those of the scans, `scan_px_per_cell`), never more than the scans'. The ply-count pass
+    /// stays at the scans' pixels (`preestimate::scan_shape` says why). Default 8.
+    pub radius_scan_px_per_cell: u32,
     /// Samples per pixel of the pre-estimation renders.
     pub spp: u32,
     /// Best patterns of the coarse candidate ranking that get a warm-up (the best named weave and
@@ -129,6 +133,7 @@ impl Default for PreOptions {
             enabled: true,
             px_per_cell: 0,
             scan_px_per_cell: 0,
+            radius_scan_px_per_cell: 8,
             spp: 2,
             shortlist: 1,
             warmup: 8,

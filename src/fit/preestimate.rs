@@ -101,6 +101,19 @@ pub(crate) fn pre_estimate(
         coarse_scan = view(sp);
         &coarse_scan
     };
+    // The radius grids' view (`PreOptions::radius_scan_px_per_cell`): coarser than the ply
+    // count's where asked.
+    let rp = match opts.radius_scan_px_per_cell {
+        0 => sp,
+        s => s.min(sp),
+    };
+    let radius_view;
+    let radius_ev = if rp == sp {
+        Scan { ev: scan_ev, c: sp }
+    } else {
+        radius_view = view(rp);
+        Scan { ev: &radius_view, c: rp }
+    };
     let shortlist = if st.cells {
         // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
         // depends on n_p, n_f and the appearance, which are still at their defaults here.
@@ -128,7 +141,7 @@ pub(crate) fn pre_estimate(
     st.control.progress.begin("pre-estimate", shortlist.len() as u64);
     let mut warm: Vec<(f32, ClothParams)> = Vec::new();
     for p in shortlist {
-        warm.push(warm_up(st, scan_ev, &cloth, p, sp, opts.warmup));
+        warm.push(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, p, opts.warmup));
         st.control.progress.advance(1);
     }
     st.control.progress.finish();
@@ -322,16 +335,17 @@ pub(crate) fn network_reading(
 
 /// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and
 /// shading, enough to hide the pattern's signal, so each candidate gets its own. The scans' loss
-/// (default appearance but the colours, on `pre_ev` at `cp` px per cell, the scans' view) does not rank the shape
+/// (default appearance but the colours; the ply counts on the view `plies`, the radius grids on
+/// the view `radii`, see [`scan_shape`]) does not rank the shape
 /// variants reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations)
 /// of the appearance on the fit's evaluator, and the best one is polished. Returns the polished
 /// loss and cloth.
 fn warm_up(
     st: &Stage,
-    pre_ev: &Evaluator,
+    plies: Scan,
+    radii: Scan,
     cloth: &ClothParams,
     p: WeavePattern,
-    cp: u32,
     iters: usize,
 ) -> (f32, ClothParams) {
     let (ev, c, stop) = (st.ev, st.render.px_per_cell, &*st.control.stop);
@@ -340,7 +354,7 @@ fn warm_up(
     let mut best_radii: Option<(f32, ClothParams)> = None;
     // The shape variants the scans find with each reading of the family colours (see
     // `shape_variants`), each with its reading's colour estimate.
-    for (mut v, reading) in shape_variants(pre_ev, &cand, cp, stop) {
+    for (mut v, reading) in shape_variants(plies, radii, &cand, stop) {
         let cache = estimate_colours(ev, &mut v, c, reading);
         let l = refine::lm_appearance(ev, &cache, &mut v, iters, stop);
         if best_radii.as_ref().is_none_or(|b| l < b.0) {
@@ -367,6 +381,19 @@ fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec
         .collect()
 }
 
+/// A view the shape scans run on: its evaluator and pixels per cell.
+#[derive(Clone, Copy)]
+struct Scan<'a> {
+    ev: &'a Evaluator,
+    c: u32,
+}
+
+/// The records of one scan view ([`RecordMemo`]) and its pixels per cell.
+struct ScanMemo<'a> {
+    memo: RecordMemo<'a>,
+    c: u32,
+}
+
 /// The shape variants of [`scan_shape`] with the family colours read over the yarn pixels, then
 /// those it finds with every pixel of the cells read, duplicates removed; each with the reading
 /// that found it, whose colour estimate starts its descent (a yarn-pixel variant starts where it
@@ -382,13 +409,15 @@ fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec
 /// 5 plies at 4.2/4.9 to the descent (session 14's one-repeat target 2: 23 dB for 38 dB before
 /// that rule). The scans' loss does not rank the variants reliably anyway (see [`scan_shape`]);
 /// the descent of each does. So both readings' variants are offered to it, and it keeps the best.
-fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
+fn shape_variants(plies: Scan, radii: Scan, cloth: &ClothParams, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
     // Both scans start from the same cloth and walk the same grids: the states they share are
-    // traced once (`RecordMemo`).
-    let memo = RecordMemo::new(ev);
+    // traced once (`RecordMemo`, one per view).
+    let ply_memo = ScanMemo { memo: RecordMemo::new(plies.ev), c: plies.c };
+    let radius_memo = ScanMemo { memo: RecordMemo::new(radii.ev), c: radii.c };
+    let scan = |reading: Reading| scan_shape(&ply_memo, &radius_memo, cloth, reading, stop);
     let mut out: Vec<(ClothParams, Reading)> =
-        scan_shape(&memo, cloth, c, Reading::YarnPixels, stop).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
-    for v in scan_shape(&memo, cloth, c, Reading::EveryPixel, stop) {
+        scan(Reading::YarnPixels).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
+    for v in scan(Reading::EveryPixel) {
         if !out.iter().any(|(u, _)| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
             out.push((v, Reading::EveryPixel));
         }
@@ -405,16 +434,29 @@ fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool
 /// families' radii moved by up to ±1 in turn (weft and warp can differ by half the range).
 /// Returns the four variants, duplicates removed: the scans' loss, at the default appearance,
 /// does not rank them reliably; the caller's descent does.
-fn scan_shape(memo: &RecordMemo, cloth: &ClothParams, c: u32, reading: Reading, stop: &AtomicBool) -> Vec<ClothParams> {
-    let ev = memo.ev();
+///
+/// The radius grids run on the view `radii`, the ply pass on `plies` (each grid compares losses
+/// of one view only). The ply count needs the fit's pixels: at 8 px per cell the ply stripes and
+/// lobes are a pixel or two wide, and a Mitsuba 2/2 twill's scan picked 1 ply (session 18). The
+/// radii set the gaps and the silhouettes, a few pixels wide even at 8 px per cell, so their grids
+/// (about half a scan's records) can run coarser (`PreOptions::radius_scan_px_per_cell`).
+fn scan_shape(
+    plies: &ScanMemo,
+    radii: &ScanMemo,
+    cloth: &ClothParams,
+    reading: Reading,
+    stop: &AtomicBool,
+) -> Vec<ClothParams> {
+    let ev = radii.memo.ev();
     let (lo, hi) = RADIUS_RANGE;
     let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
-    let loss = |_: &Evaluator, cl: &mut ClothParams| pattern_loss_memo(memo, cl, c, reading);
+    let loss = |_: &Evaluator, cl: &mut ClothParams| pattern_loss_memo(&radii.memo, cl, radii.c, reading);
+    let ply_loss = |_: &Evaluator, cl: &mut ClothParams| pattern_loss_memo(&plies.memo, cl, plies.c, reading);
     let mut cl = cloth.clone();
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
     }
-    let (at_common, joint) = scan_plies(ev, &cl, &loss, stop);
+    let (at_common, joint) = scan_plies(plies.memo.ev(), &cl, &ply_loss, stop);
     let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
     let per_family = |base: &ClothParams| {
         let mut cl = base.clone();
@@ -658,9 +700,11 @@ mod tests {
         let shapes = |v: &[ClothParams]| v.iter().map(|v| (v.n_p, v.r_e, v.r_a)).collect::<Vec<_>>();
         // The yarn-pixel reading alone (session 11 to 14) leaves the glowing edges out and
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
-        let yarn = scan_shape(&RecordMemo::new(&ev), &start, c, Reading::YarnPixels, &stop);
+        let fine = Scan { ev: &ev, c };
+        let memo = || ScanMemo { memo: RecordMemo::new(&ev), c };
+        let yarn = scan_shape(&memo(), &memo(), &start, Reading::YarnPixels, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
-        let all: Vec<ClothParams> = shape_variants(&ev, &start, c, &stop).into_iter().map(|v| v.0).collect();
+        let all: Vec<ClothParams> = shape_variants(fine, fine, &start, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
@@ -672,7 +716,12 @@ mod tests {
             resample(ev.target(), 5 * sp, 5 * sp),
             2,
         );
-        let all: Vec<ClothParams> = shape_variants(&coarse, &start, sp, &stop).into_iter().map(|v| v.0).collect();
+        let coarse = Scan { ev: &coarse, c: sp };
+        let all: Vec<ClothParams> = shape_variants(coarse, coarse, &start, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings at {sp} px per cell: {:?}", shapes(&all));
+        // The default split (`PreOptions::radius_scan_px_per_cell`): radius grids at 8 px per
+        // cell, the ply pass at the fit's 16.
+        let all: Vec<ClothParams> = shape_variants(fine, coarse, &start, &stop).into_iter().map(|v| v.0).collect();
+        assert!(all.iter().any(near_truth), "radii at {sp}, plies at {c} px per cell: {:?}", shapes(&all));
     }
 }
