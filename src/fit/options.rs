@@ -100,8 +100,12 @@ pub struct PreOptions {
     /// 29.8 dB (docs/benchmarks.md, session 18): the ply stripes and lobes need the pixels.
     pub scan_px_per_cell: u32,
     /// Pixels per cell of the shape scans' radius grids (the common radius and each family's;
-    /// 0: those of the scans, `scan_px_per_cell`), never more than the scans'. The ply-count pass
-    /// stays at the scans' pixels (`preestimate::scan_shape` says why). Default 8.
+    /// 0, the default: those of the scans, `scan_px_per_cell`), never more than the scans'. The
+    /// ply-count pass stays at the scans' pixels (`preestimate::scan_shape` says why). Off by
+    /// default: at 8 px the warm-up of the whole-path eval took 36 % less CPU with the same
+    /// patterns and crop PSNR, but two of the four one-repeat targets lost 1 dB (41.3 instead of
+    /// 42.3 on target 3: the coarse grid settled on another radius and the warm-up's loss was 4
+    /// times the 16-px one's; docs/benchmarks.md, session 19).
     pub radius_scan_px_per_cell: u32,
     /// Samples per pixel of the pre-estimation renders.
     pub spp: u32,
@@ -133,7 +137,7 @@ impl Default for PreOptions {
             enabled: true,
             px_per_cell: 0,
             scan_px_per_cell: 0,
-            radius_scan_px_per_cell: 8,
+            radius_scan_px_per_cell: 0,
             spp: 2,
             shortlist: 1,
             warmup: 8,

@@ -412,9 +412,17 @@ struct ScanMemo<'a> {
 fn shape_variants(plies: Scan, radii: Scan, cloth: &ClothParams, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
     // Both scans start from the same cloth and walk the same grids: the states they share are
     // traced once (`RecordMemo`, one per view).
+    // One view for both (the default): one memo, so a state the radius grid and the ply pass
+    // share is traced once, as before the split.
     let ply_memo = ScanMemo { memo: RecordMemo::new(plies.ev), c: plies.c };
-    let radius_memo = ScanMemo { memo: RecordMemo::new(radii.ev), c: radii.c };
-    let scan = |reading: Reading| scan_shape(&ply_memo, &radius_memo, cloth, reading, stop);
+    let own;
+    let radius_memo = if std::ptr::eq(plies.ev, radii.ev) && plies.c == radii.c {
+        &ply_memo
+    } else {
+        own = ScanMemo { memo: RecordMemo::new(radii.ev), c: radii.c };
+        &own
+    };
+    let scan = |reading: Reading| scan_shape(&ply_memo, radius_memo, cloth, reading, stop);
     let mut out: Vec<(ClothParams, Reading)> =
         scan(Reading::YarnPixels).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
     for v in scan(Reading::EveryPixel) {
@@ -439,7 +447,8 @@ fn shape_variants(plies: Scan, radii: Scan, cloth: &ClothParams, stop: &AtomicBo
 /// of one view only). The ply count needs the fit's pixels: at 8 px per cell the ply stripes and
 /// lobes are a pixel or two wide, and a Mitsuba 2/2 twill's scan picked 1 ply (session 18). The
 /// radii set the gaps and the silhouettes, a few pixels wide even at 8 px per cell, so their grids
-/// (about half a scan's records) can run coarser (`PreOptions::radius_scan_px_per_cell`).
+/// (about half a scan's records) can run coarser (`PreOptions::radius_scan_px_per_cell`; off by
+/// default, it costs thin yarns their radius on some clean one-repeat targets, session 19).
 fn scan_shape(
     plies: &ScanMemo,
     radii: &ScanMemo,
@@ -719,8 +728,8 @@ mod tests {
         let coarse = Scan { ev: &coarse, c: sp };
         let all: Vec<ClothParams> = shape_variants(coarse, coarse, &start, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings at {sp} px per cell: {:?}", shapes(&all));
-        // The default split (`PreOptions::radius_scan_px_per_cell`): radius grids at 8 px per
-        // cell, the ply pass at the fit's 16.
+        // The split of `PreOptions::radius_scan_px_per_cell` = 8: radius grids at 8 px per cell,
+        // the ply pass at the fit's 16.
         let all: Vec<ClothParams> = shape_variants(fine, coarse, &start, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "radii at {sp}, plies at {c} px per cell: {:?}", shapes(&all));
     }
