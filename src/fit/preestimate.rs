@@ -128,7 +128,7 @@ pub(crate) fn pre_estimate(
     st.control.progress.begin("pre-estimate", shortlist.len() as u64);
     let mut warm: Vec<(f32, ClothParams)> = Vec::new();
     for p in shortlist {
-        warm.push(warm_up(st, scan_ev, &cloth, p, sp, opts.warmup));
+        warm.push(warm_up(st, scan_ev, &cloth, p, sp, opts.warmup, opts.twist_origin));
         st.control.progress.advance(1);
     }
     st.control.progress.finish();
@@ -333,6 +333,7 @@ fn warm_up(
     p: WeavePattern,
     cp: u32,
     iters: usize,
+    twist: bool,
 ) -> (f32, ClothParams) {
     let (ev, c, stop) = (st.ev, st.render.px_per_cell, &*st.control.stop);
     let mut cand = cloth.clone();
@@ -340,7 +341,7 @@ fn warm_up(
     let mut best_radii: Option<(f32, ClothParams)> = None;
     // The shape variants the scans find with each reading of the family colours (see
     // `shape_variants`), each with its reading's colour estimate.
-    for (mut v, reading) in shape_variants(pre_ev, &cand, cp, stop) {
+    for (mut v, reading) in shape_variants(pre_ev, &cand, cp, twist, stop) {
         let cache = estimate_colours(ev, &mut v, c, reading);
         let l = refine::lm_appearance(ev, &cache, &mut v, iters, stop);
         if best_radii.as_ref().is_none_or(|b| l < b.0) {
@@ -382,13 +383,21 @@ fn choose_starts(warm: Vec<(f32, ClothParams)>, most: usize, margin: f32) -> Vec
 /// 5 plies at 4.2/4.9 to the descent (session 14's one-repeat target 2: 23 dB for 38 dB before
 /// that rule). The scans' loss does not rank the variants reliably anyway (see [`scan_shape`]);
 /// the descent of each does. So both readings' variants are offered to it, and it keeps the best.
-fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
+fn shape_variants(
+    ev: &Evaluator,
+    cloth: &ClothParams,
+    c: u32,
+    twist: bool,
+    stop: &AtomicBool,
+) -> Vec<(ClothParams, Reading)> {
     // Both scans start from the same cloth and walk the same grids: the states they share are
     // traced once (`RecordMemo`).
     let memo = RecordMemo::new(ev);
-    let mut out: Vec<(ClothParams, Reading)> =
-        scan_shape(&memo, cloth, c, Reading::YarnPixels, stop).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
-    for v in scan_shape(&memo, cloth, c, Reading::EveryPixel, stop) {
+    let mut out: Vec<(ClothParams, Reading)> = scan_shape(&memo, cloth, c, Reading::YarnPixels, twist, stop)
+        .into_iter()
+        .map(|v| (v, Reading::YarnPixels))
+        .collect();
+    for v in scan_shape(&memo, cloth, c, Reading::EveryPixel, twist, stop) {
         if !out.iter().any(|(u, _)| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
             out.push((v, Reading::EveryPixel));
         }
@@ -405,7 +414,14 @@ fn shape_variants(ev: &Evaluator, cloth: &ClothParams, c: u32, stop: &AtomicBool
 /// families' radii moved by up to ±1 in turn (weft and warp can differ by half the range).
 /// Returns the four variants, duplicates removed: the scans' loss, at the default appearance,
 /// does not rank them reliably; the caller's descent does.
-fn scan_shape(memo: &RecordMemo, cloth: &ClothParams, c: u32, reading: Reading, stop: &AtomicBool) -> Vec<ClothParams> {
+fn scan_shape(
+    memo: &RecordMemo,
+    cloth: &ClothParams,
+    c: u32,
+    reading: Reading,
+    twist: bool,
+    stop: &AtomicBool,
+) -> Vec<ClothParams> {
     let ev = memo.ev();
     let (lo, hi) = RADIUS_RANGE;
     let grid = (0..).map(|k| lo.max(1.5) + 0.5 * k as f32).take_while(|r| *r <= hi + 1e-6);
@@ -414,7 +430,7 @@ fn scan_shape(memo: &RecordMemo, cloth: &ClothParams, c: u32, reading: Reading, 
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
     }
-    let (at_common, joint) = scan_plies(ev, &cl, &loss, stop);
+    let (at_common, joint) = scan_plies(ev, &cl, &loss, twist, stop);
     let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
     let per_family = |base: &ClothParams| {
         let mut cl = base.clone();
@@ -435,12 +451,21 @@ fn scan_shape(memo: &RecordMemo, cloth: &ClothParams, c: u32, reading: Reading, 
     out
 }
 
+/// Twist origins per family tried with each ply count in [`scan_plies`] (a quarter of a ply
+/// period apart; the fit's scans refine the one kept, `shape_extra::fit_ply_origin`).
+const TWIST_SCAN_STEPS: usize = 4;
+
 /// One pass over `(n_p, radius)`, the common radius of `cl` and ±0.5, serves both the best `n_p`
-/// at that radius and the best pair. Returns the two variants of `cl`.
+/// at that radius and the best pair. With `twist`, each ply count of at least two is scored at
+/// the common radius with the best of [`TWIST_SCAN_STEPS`] twist origins per family
+/// (`shape_extra::scan_ply_origin`): a photo's crop shows its plies' stripes at a phase the
+/// model's origin does not give them, and at that origin the true few plies lose to many fine
+/// ones the blur erases. Returns the two variants of `cl`.
 fn scan_plies(
     ev: &Evaluator,
     cl: &ClothParams,
     loss: &impl Fn(&Evaluator, &mut ClothParams) -> f32,
+    twist: bool,
     stop: &AtomicBool,
 ) -> (ClothParams, ClothParams) {
     let (lo, hi) = RADIUS_RANGE;
@@ -454,12 +479,18 @@ fn scan_plies(
             }
             let mut cand = cl.clone();
             (cand.n_p, cand.r_e, cand.r_a) = (n, r, r);
-            let l = loss(ev, &mut cand);
+            let mut l = loss(ev, &mut cand);
+            let mut shape = cl.shape;
+            if twist && r == r0 && n >= 2 {
+                let mut c = cand.clone();
+                l = super::shape_extra::scan_ply_origin(&mut c, l, TWIST_SCAN_STEPS, |v| loss(ev, v));
+                shape = c.shape;
+            }
             if r == r0 && best_common.is_none_or(|b| l < b) {
-                (best_common, at_common.n_p) = (Some(l), n);
+                (best_common, at_common.n_p, at_common.shape) = (Some(l), n, shape);
             }
             if best_joint.is_none_or(|b| l < b) {
-                (best_joint, joint.n_p, joint.r_e, joint.r_a) = (Some(l), n, r, r);
+                (best_joint, joint.n_p, joint.r_e, joint.r_a, joint.shape) = (Some(l), n, r, r, shape);
             }
         }
     }
@@ -658,9 +689,9 @@ mod tests {
         let shapes = |v: &[ClothParams]| v.iter().map(|v| (v.n_p, v.r_e, v.r_a)).collect::<Vec<_>>();
         // The yarn-pixel reading alone (session 11 to 14) leaves the glowing edges out and
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
-        let yarn = scan_shape(&RecordMemo::new(&ev), &start, c, Reading::YarnPixels, &stop);
+        let yarn = scan_shape(&RecordMemo::new(&ev), &start, c, Reading::YarnPixels, false, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
-        let all: Vec<ClothParams> = shape_variants(&ev, &start, c, &stop).into_iter().map(|v| v.0).collect();
+        let all: Vec<ClothParams> = shape_variants(&ev, &start, c, false, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
@@ -672,7 +703,8 @@ mod tests {
             resample(ev.target(), 5 * sp, 5 * sp),
             2,
         );
-        let all: Vec<ClothParams> = shape_variants(&coarse, &start, sp, &stop).into_iter().map(|v| v.0).collect();
+        let all: Vec<ClothParams> =
+            shape_variants(&coarse, &start, sp, false, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings at {sp} px per cell: {:?}", shapes(&all));
     }
 }
