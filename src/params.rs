@@ -506,6 +506,13 @@ impl ClothParams {
         let (c, a) = (YarnShape::CROSSING_RANGE, YarnShape::ASPECT_RANGE);
         check_range("shape.crossing", self.shape.crossing as f64, c.0 as f64, c.1 as f64)?;
         check_range("shape.aspect", self.shape.aspect as f64, a.0 as f64, a.1 as f64)?;
+        // Any arc length is a twist origin (the twist is periodic), within the f32 precision of a
+        // repeat's arc length.
+        for (field, x) in
+            [("shape.ply_origin[0]", self.shape.ply_origin[0]), ("shape.ply_origin[1]", self.shape.ply_origin[1])]
+        {
+            check_range(field, x as f64, -1e4, 1e4)?;
+        }
         let h = &self.hair;
         for (field, x, (lo, hi)) in [
             ("hair.density", h.density, Hair::DENSITY_RANGE),

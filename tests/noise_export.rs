@@ -710,7 +710,7 @@ fn mitsuba_loads_the_scene() {
 #[test]
 fn export_keeps_the_fitted_yarn_shape() {
     let mut params = twill();
-    params.cloth.shape = YarnShape { crossing: 0.45, aspect: 0.6 };
+    params.cloth.shape = YarnShape { crossing: 0.45, aspect: 0.6, ..Default::default() };
     let set = YarnSet::with_shape(&params.cloth.pattern, params.cloth.r_e, params.cloth.r_a, params.cloth.shape);
     let dir = tempfile::tempdir().unwrap();
     let s = export(&params, dir.path(), &ExportOptions { repeats: Some([1, 1]), ..Default::default() }).unwrap();

@@ -197,9 +197,12 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         }
         _ => None,
     };
+    // A prepared crop starts wherever preparation put it: the warm-up's ply scans also try
+    // where the twist starts (`PreOptions::twist_origin`).
+    let pre_opts = PreOptions { twist_origin: opts.pre.twist_origin || target.prep.is_some(), ..opts.pre.clone() };
     let mut pre = preestimate::pre_estimate(
         &st0,
-        &opts.pre,
+        &pre_opts,
         &target.crop,
         preestimate::default_cloth(pattern0),
         cues.as_ref().map(|c| &c.1.pattern),
@@ -229,6 +232,13 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     if target.prep.is_some() && opts.pre.enabled {
         stages.mark("view", &ev, Some(&pre.initial));
+        // The crop starts where preparation put it, not at the model's repeat edge: where the
+        // ply twist starts along each family is read once here for every start
+        // (`shape_extra::fit_ply_origin`), and again for the winner before its polish.
+        shape_extra::fit_ply_origin(&ev, &mut pre.initial);
+        let origin = pre.initial.shape.ply_origin;
+        pre.starts.iter_mut().chain(pre.warmed.iter_mut()).for_each(|c| c.shape.ply_origin = origin);
+        stages.mark("twist", &ev, Some(&pre.initial));
     }
     let t_pre = clock.elapsed().as_secs_f64() - t_prep;
 
@@ -252,6 +262,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
     if !joint.stopped {
+        if target.prep.is_some() {
+            shape_extra::fit_ply_origin(&ev, &mut cloth);
+        }
         finish::polish_winner(&st, &opts.finish, &mut cloth);
         stages.mark("polish", &ev, Some(&cloth));
         // Optional yarn shape (crossing depth, flattening), kept only where it pays (shape_extra.rs).

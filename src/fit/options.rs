@@ -129,6 +129,10 @@ pub struct PreOptions {
     /// joins the shortlist, and after the finish it replaces the fit's pattern where the loss
     /// cannot tell the two apart (prepared photos with free cells only).
     pub cell_cues: bool,
+    /// Scan where the ply twist starts along each family (`YarnShape::ply_origin`) with the ply
+    /// counts of the warm-up's shape scans: on for a prepared photo, whose crop starts wherever
+    /// preparation put it; off for a one-repeat input, framed at the model's repeat edge.
+    pub twist_origin: bool,
 }
 
 impl Default for PreOptions {
@@ -149,6 +153,7 @@ impl Default for PreOptions {
             network: true,
             model: None,
             cell_cues: true,
+            twist_origin: false,
         }
     }
 }

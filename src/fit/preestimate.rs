@@ -141,7 +141,7 @@ pub(crate) fn pre_estimate(
     st.control.progress.begin("pre-estimate", shortlist.len() as u64);
     let mut warm: Vec<(f32, ClothParams)> = Vec::new();
     for p in shortlist {
-        warm.push(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, p, opts.warmup));
+        warm.push(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, p, opts.warmup, opts.twist_origin));
         st.control.progress.advance(1);
     }
     st.control.progress.finish();
@@ -347,6 +347,7 @@ fn warm_up(
     cloth: &ClothParams,
     p: WeavePattern,
     iters: usize,
+    twist: bool,
 ) -> (f32, ClothParams) {
     let (ev, c, stop) = (st.ev, st.render.px_per_cell, &*st.control.stop);
     let mut cand = cloth.clone();
@@ -354,7 +355,7 @@ fn warm_up(
     let mut best_radii: Option<(f32, ClothParams)> = None;
     // The shape variants the scans find with each reading of the family colours (see
     // `shape_variants`), each with its reading's colour estimate.
-    for (mut v, reading) in shape_variants(plies, radii, &cand, stop) {
+    for (mut v, reading) in shape_variants(plies, radii, &cand, twist, stop) {
         let cache = estimate_colours(ev, &mut v, c, reading);
         let l = refine::lm_appearance(ev, &cache, &mut v, iters, stop);
         if best_radii.as_ref().is_none_or(|b| l < b.0) {
@@ -409,7 +410,13 @@ struct ScanMemo<'a> {
 /// 5 plies at 4.2/4.9 to the descent (session 14's one-repeat target 2: 23 dB for 38 dB before
 /// that rule). The scans' loss does not rank the variants reliably anyway (see [`scan_shape`]);
 /// the descent of each does. So both readings' variants are offered to it, and it keeps the best.
-fn shape_variants(plies: Scan, radii: Scan, cloth: &ClothParams, stop: &AtomicBool) -> Vec<(ClothParams, Reading)> {
+fn shape_variants(
+    plies: Scan,
+    radii: Scan,
+    cloth: &ClothParams,
+    twist: bool,
+    stop: &AtomicBool,
+) -> Vec<(ClothParams, Reading)> {
     // Both scans start from the same cloth and walk the same grids: the states they share are
     // traced once (`RecordMemo`, one per view).
     // One view for both (the default): one memo, so a state the radius grid and the ply pass
@@ -422,7 +429,7 @@ fn shape_variants(plies: Scan, radii: Scan, cloth: &ClothParams, stop: &AtomicBo
         own = ScanMemo { memo: RecordMemo::new(radii.ev), c: radii.c };
         &own
     };
-    let scan = |reading: Reading| scan_shape(&ply_memo, radius_memo, cloth, reading, stop);
+    let scan = |reading: Reading| scan_shape(&ply_memo, radius_memo, cloth, reading, twist, stop);
     let mut out: Vec<(ClothParams, Reading)> =
         scan(Reading::YarnPixels).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
     for v in scan(Reading::EveryPixel) {
@@ -454,6 +461,7 @@ fn scan_shape(
     radii: &ScanMemo,
     cloth: &ClothParams,
     reading: Reading,
+    twist: bool,
     stop: &AtomicBool,
 ) -> Vec<ClothParams> {
     let ev = radii.memo.ev();
@@ -465,7 +473,7 @@ fn scan_shape(
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
     }
-    let (at_common, joint) = scan_plies(plies.memo.ev(), &cl, &ply_loss, stop);
+    let (at_common, joint) = scan_plies(plies.memo.ev(), &cl, &ply_loss, twist, stop);
     let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
     let per_family = |base: &ClothParams| {
         let mut cl = base.clone();
@@ -486,12 +494,21 @@ fn scan_shape(
     out
 }
 
+/// Twist origins per family tried with each ply count in [`scan_plies`] (a quarter of a ply
+/// period apart; the fit's scans refine the one kept, `shape_extra::fit_ply_origin`).
+const TWIST_SCAN_STEPS: usize = 4;
+
 /// One pass over `(n_p, radius)`, the common radius of `cl` and ±0.5, serves both the best `n_p`
-/// at that radius and the best pair. Returns the two variants of `cl`.
+/// at that radius and the best pair. With `twist`, each ply count of at least two is scored at
+/// the common radius with the best of [`TWIST_SCAN_STEPS`] twist origins per family
+/// (`shape_extra::scan_ply_origin`): a photo's crop shows its plies' stripes at a phase the
+/// model's origin does not give them, and at that origin the true few plies lose to many fine
+/// ones the blur erases. Returns the two variants of `cl`.
 fn scan_plies(
     ev: &Evaluator,
     cl: &ClothParams,
     loss: &impl Fn(&Evaluator, &mut ClothParams) -> f32,
+    twist: bool,
     stop: &AtomicBool,
 ) -> (ClothParams, ClothParams) {
     let (lo, hi) = RADIUS_RANGE;
@@ -505,12 +522,18 @@ fn scan_plies(
             }
             let mut cand = cl.clone();
             (cand.n_p, cand.r_e, cand.r_a) = (n, r, r);
-            let l = loss(ev, &mut cand);
+            let mut l = loss(ev, &mut cand);
+            let mut shape = cl.shape;
+            if twist && r == r0 && n >= 2 {
+                let mut c = cand.clone();
+                l = super::shape_extra::scan_ply_origin(&mut c, l, TWIST_SCAN_STEPS, |v| loss(ev, v));
+                shape = c.shape;
+            }
             if r == r0 && best_common.is_none_or(|b| l < b) {
-                (best_common, at_common.n_p) = (Some(l), n);
+                (best_common, at_common.n_p, at_common.shape) = (Some(l), n, shape);
             }
             if best_joint.is_none_or(|b| l < b) {
-                (best_joint, joint.n_p, joint.r_e, joint.r_a) = (Some(l), n, r, r);
+                (best_joint, joint.n_p, joint.r_e, joint.r_a, joint.shape) = (Some(l), n, r, r, shape);
             }
         }
     }
@@ -711,9 +734,9 @@ mod tests {
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
         let fine = Scan { ev: &ev, c };
         let memo = || ScanMemo { memo: RecordMemo::new(&ev), c };
-        let yarn = scan_shape(&memo(), &memo(), &start, Reading::YarnPixels, &stop);
+        let yarn = scan_shape(&memo(), &memo(), &start, Reading::YarnPixels, false, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
-        let all: Vec<ClothParams> = shape_variants(fine, fine, &start, &stop).into_iter().map(|v| v.0).collect();
+        let all: Vec<ClothParams> = shape_variants(fine, fine, &start, false, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
@@ -726,11 +749,13 @@ mod tests {
             2,
         );
         let coarse = Scan { ev: &coarse, c: sp };
-        let all: Vec<ClothParams> = shape_variants(coarse, coarse, &start, &stop).into_iter().map(|v| v.0).collect();
+        let all: Vec<ClothParams> =
+            shape_variants(coarse, coarse, &start, false, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings at {sp} px per cell: {:?}", shapes(&all));
         // The split of `PreOptions::radius_scan_px_per_cell` = 8: radius grids at 8 px per cell,
         // the ply pass at the fit's 16.
-        let all: Vec<ClothParams> = shape_variants(fine, coarse, &start, &stop).into_iter().map(|v| v.0).collect();
+        let all: Vec<ClothParams> =
+            shape_variants(fine, coarse, &start, false, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "radii at {sp}, plies at {c} px per cell: {:?}", shapes(&all));
     }
 }

@@ -225,6 +225,17 @@ impl PlyModel {
         (kappa, kappa_f)
     }
 
+    /// Arc length along `yarn` over which its plies repeat (identical plies after `1/n_p` of a
+    /// turn of the twist); the yarn's arc length per repeat for untwisted plies.
+    pub fn ply_period(&self, yarn: &YarnCurve) -> f32 {
+        let (kappa, len) = self.ply_twist(yarn);
+        if kappa.abs() > 1e-9 {
+            TAU / self.n_p as f32 / kappa.abs()
+        } else {
+            len
+        }
+    }
+
     /// The ply twist rate of [`PlyModel::twists`] alone, with the yarn's arc length per repeat it
     /// was rounded to.
     fn ply_twist(&self, yarn: &YarnCurve) -> (f32, f32) {
@@ -502,7 +513,7 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
         let (mut yes, mut no) = (0, 0);
         for (aspect, n_p) in [(1.0f32, 1u32), (1.0, 3), (0.6, 4), (1.0, 7), (0.5, 2)] {
-            let shape = YarnShape { crossing: 0.5, aspect };
+            let shape = YarnShape { crossing: 0.5, aspect, ..Default::default() };
             let set = YarnSet::with_shape(&WeavePattern::preset("twill22").unwrap(), 3.5, 4.0, shape);
             let m = PlyModel { n_p, n_f: 30 };
             for y in &set.yarns {
@@ -542,7 +553,7 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(12);
         let (mut mapped, mut exits) = (0, 0);
         for (aspect, n_p) in [(1.0f32, 3u32), (0.5, 4)] {
-            let shape = YarnShape { crossing: 0.5, aspect };
+            let shape = YarnShape { crossing: 0.5, aspect, ..Default::default() };
             let set = YarnSet::with_shape(&WeavePattern::preset("twill22").unwrap(), 3.5, 4.0, shape);
             let geom = TileGeometry::new(set);
             let m = PlyModel { n_p, n_f: 30 };

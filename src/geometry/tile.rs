@@ -801,7 +801,7 @@ mod shape_tests {
     use crate::pattern::WeavePattern;
 
     fn flat() -> TileGeometry {
-        let shape = YarnShape { crossing: 0.5, aspect: 0.5 };
+        let shape = YarnShape { crossing: 0.5, aspect: 0.5, ..Default::default() };
         TileGeometry::new(YarnSet::with_shape(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0, shape))
     }
 
@@ -816,7 +816,7 @@ mod shape_tests {
         let geom = flat();
         let y = &geom.set.yarns[0];
         // Seen from above, the flattened cloth is the round one (same crossing) squashed by the aspect.
-        let round_shape = YarnShape { crossing: 0.5, aspect: 1.0 };
+        let round_shape = YarnShape { crossing: 0.5, aspect: 1.0, ..Default::default() };
         let round =
             TileGeometry::new(YarnSet::with_shape(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0, round_shape));
         let top = geom.closest(Vec3::new(5.0, 5.0, 30.0), -Vec3::Z, None).unwrap();

@@ -36,11 +36,22 @@ pub struct YarnShape {
     pub crossing: f32,
     /// Half-height / half-width of the cross-section (1 = round).
     pub aspect: f32,
+    /// Where the ply twist starts along the yarns, `[weft, warp]`: the arc length (model units)
+    /// added to every yarn's arc length from the repeat's edge before the plies' and fibres'
+    /// twist angles are taken from it (0 by default).
+    ///
+    /// Why: the twist is periodic per repeat but its phase is tied to where the repeat starts.
+    /// A photo's crop starts at whatever yarn crossing the preparation chose, so the crop's
+    /// helical ply stripes stand at a phase the model framed at its own repeat edge cannot show,
+    /// whichever way the pattern is shifted: on the whole-path eval's 5-end satin (seed 1, target
+    /// 0) the true cloth framed the model's way scored 19 dB against its prepared crop and 29 dB
+    /// moved by whole cells (docs/benchmarks.md, session 19).
+    pub ply_origin: [f32; 2],
 }
 
 impl Default for YarnShape {
     fn default() -> Self {
-        YarnShape { crossing: CRIMP, aspect: 1.0 }
+        YarnShape { crossing: CRIMP, aspect: 1.0, ply_origin: [0.0; 2] }
     }
 }
 
@@ -85,6 +96,9 @@ pub struct YarnCurve {
     /// Length along `s` of the pattern's minimum repeat (≤ the curve's period when the tile holds
     /// several repeats): twist rates are whole turns per repeat.
     pub repeat: f32,
+    /// Arc length added to [`YarnCurve::arc_length`] in the frame ([`YarnShape::ply_origin`] of
+    /// the yarn's family): the phase of the ply and fibre twist.
+    pub arc_origin: f32,
     arc: Vec<f32>,
     /// Arc-length table steps per unit `s` (`(arc.len() − 1) / period`).
     arc_du: f32,
@@ -101,7 +115,7 @@ pub struct YarnFrame {
     pub ey: Vec3,
     /// `e_x = e_y × e_z`.
     pub ex: Vec3,
-    /// Arc length from `s = 0`.
+    /// Arc length from `s = 0`, plus the yarn's twist origin ([`YarnCurve::arc_origin`]).
     pub arc: f32,
 }
 
@@ -139,7 +153,7 @@ impl YarnCurve {
         }
         let offset = (index as f32 + 0.5) * PITCH;
         let arc_du = n as f32 / period;
-        YarnCurve { family, index, offset, radius, aspect: 1.0, height, repeat: period, arc, arc_du }
+        YarnCurve { family, index, offset, radius, aspect: 1.0, height, repeat: period, arc_origin: 0.0, arc, arc_du }
     }
 
     /// World point → the stretched space where this yarn's tube is round (identity when round).
@@ -250,14 +264,14 @@ impl YarnCurve {
         laps * self.arc[self.arc.len() - 1] + self.arc[k] * (1.0 - f) + self.arc[k + 1] * f
     }
 
-    /// Frame at `s`.
+    /// Frame at `s`; its arc length starts at the twist origin ([`YarnCurve::arc_origin`]).
     pub fn frame(&self, s: f32) -> YarnFrame {
         let (_, dz, _) = self.height.eval(s);
         let c = self.point(s);
         let t = (self.axis() + Vec3::Z * dz).normalize();
         let ey = (Vec3::Z - t * t.z).normalize();
         let ex = ey.cross(t);
-        YarnFrame { c, t, ey, ex, arc: self.arc_length(s) }
+        YarnFrame { c, t, ey, ex, arc: self.arc_length(s) + self.arc_origin }
     }
 
     /// Closest curve parameter to `p` (Newton on `(p − c(s))·c'(s) = 0`, started at the projection).
@@ -337,6 +351,10 @@ impl YarnSet {
         let red = pattern.reduced();
         for y in &mut yarns {
             y.aspect = shape.aspect;
+            y.arc_origin = match y.family {
+                Family::Weft => shape.ply_origin[0],
+                Family::Warp => shape.ply_origin[1],
+            };
             y.repeat = match y.family {
                 Family::Weft => red.n_a() as f32 * PITCH,
                 Family::Warp => red.n_e() as f32 * PITCH,

@@ -492,7 +492,7 @@ mod tests {
         let round = ClothParams::preset("twill22").unwrap();
         let scene = Scene { width: 24, height: 20, spp: 2, ..Scene::default() };
         let mut flat = round.clone();
-        flat.shape = crate::geometry::yarn::YarnShape { crossing: 0.5, aspect: 0.5 };
+        flat.shape = crate::geometry::yarn::YarnShape { crossing: 0.5, aspect: 0.5, ..Default::default() };
         flat.hair = crate::geometry::hair::Hair { density: 2.0, length: 6.0, radius: 0.12 };
         let both = Scene { lights: crate::scene::LightRig::named("both").unwrap(), ..scene.clone() };
         let opts = RenderOptions { threads: Some(1), ..Default::default() };
