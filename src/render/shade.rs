@@ -248,7 +248,7 @@ fn vertex_gradient(
 /// [`shade_path`] with the exact derivatives of all 30 appearance scalars, equal to
 /// `shade_path(g.full(), …)` up to rounding but several times faster: each vertex's lobes are
 /// summed over its light samples in the terms that do not depend on the colours
-/// ([`vertex_gradient`]), and only the per-vertex products with the colours and with the path
+/// (`vertex_gradient`), and only the per-vertex products with the colours and with the path
 /// throughput use 30 partials.
 pub fn shade_path_gradient(
     g: &GradientParams,
