@@ -198,8 +198,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         _ => None,
     };
     // A prepared crop starts wherever preparation put it: the warm-up's ply scans also try
-    // where the twist starts (`PreOptions::twist_origin`).
-    let pre_opts = PreOptions { twist_origin: opts.pre.twist_origin || target.prep.is_some(), ..opts.pre.clone() };
+    // where the twist starts (`PreOptions::twist_origin`), and so do the stages after them.
+    let twist = opts.pre.twist_origin || target.prep.is_some();
+    let pre_opts = PreOptions { twist_origin: twist, ..opts.pre.clone() };
     let mut pre = preestimate::pre_estimate(
         &st0,
         &pre_opts,
@@ -232,6 +233,8 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     if target.prep.is_some() && opts.pre.enabled {
         stages.mark("view", &ev, Some(&pre.initial));
+    }
+    if twist && opts.pre.enabled {
         // The crop starts where preparation put it, not at the model's repeat edge: where the
         // ply twist starts along each family is read once here for every start
         // (`shape_extra::fit_ply_origin`), and again for the winner before its polish.
@@ -262,7 +265,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
     if !joint.stopped {
-        if target.prep.is_some() {
+        if twist {
             shape_extra::fit_ply_origin(&ev, &mut cloth);
         }
         finish::polish_winner(&st, &opts.finish, &mut cloth);

@@ -418,9 +418,8 @@ fn shape_variants(
     stop: &AtomicBool,
 ) -> Vec<(ClothParams, Reading)> {
     // Both scans start from the same cloth and walk the same grids: the states they share are
-    // traced once (`RecordMemo`, one per view).
-    // One view for both (the default): one memo, so a state the radius grid and the ply pass
-    // share is traced once, as before the split.
+    // traced once (`RecordMemo`, one per view; one view for both, the default, is one memo, so a
+    // state the radius grid and the ply pass share is traced once too).
     let ply_memo = ScanMemo { memo: RecordMemo::new(plies.ev), c: plies.c };
     let own;
     let radius_memo = if std::ptr::eq(plies.ev, radii.ev) && plies.c == radii.c {

@@ -75,8 +75,9 @@ pub(crate) fn scan_ply_origin(
     let model = PlyModel { n_p: cloth.n_p, n_f: cloth.n_f };
     let periods: Vec<(usize, f32)> = [Family::Weft, Family::Warp]
         .into_iter()
-        .enumerate()
-        .filter_map(|(k, family)| set.yarns.iter().find(|y| y.family == family).map(|y| (k, model.ply_period(y))))
+        .filter_map(|family| {
+            set.yarns.iter().find(|y| y.family == family).map(|y| (family.index(), model.ply_period(y)))
+        })
         .collect();
     let mut best = (l0, cloth.clone());
     for (k, period) in periods {

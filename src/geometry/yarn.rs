@@ -77,6 +77,17 @@ pub enum Family {
     Warp,
 }
 
+impl Family {
+    /// 0 for the weft, 1 for the warp: the order of every `[weft, warp]` pair of the model
+    /// (`YarnShape::ply_origin`, the shading's per-family colours).
+    pub fn index(self) -> usize {
+        match self {
+            Family::Weft => 0,
+            Family::Warp => 1,
+        }
+    }
+}
+
 /// One yarn's centre curve `c(s)` and radius.
 #[derive(Clone, Debug)]
 pub struct YarnCurve {
@@ -351,10 +362,7 @@ impl YarnSet {
         let red = pattern.reduced();
         for y in &mut yarns {
             y.aspect = shape.aspect;
-            y.arc_origin = match y.family {
-                Family::Weft => shape.ply_origin[0],
-                Family::Warp => shape.ply_origin[1],
-            };
+            y.arc_origin = shape.ply_origin[y.family.index()];
             y.repeat = match y.family {
                 Family::Weft => red.n_a() as f32 * PITCH,
                 Family::Warp => red.n_e() as f32 * PITCH,

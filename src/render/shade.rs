@@ -141,10 +141,11 @@ impl GradientParams {
     }
 }
 
-/// Scatter a `K`-partial dual (the `(α, η)` terms: `K` = 2) into the 30 appearance partials (`map[j]` receives partial `j`, for the first `used` partials).
-fn lift<const K: usize>(x: Dual<K>, map: &[usize; K], used: usize) -> Dual<N_APPEARANCE> {
+/// Scatter a `K`-partial dual (the `(α, η)` terms: `K` = 2) into the 30 appearance partials
+/// (`map[j]` receives partial `j`).
+fn lift<const K: usize>(x: Dual<K>, map: &[usize; K]) -> Dual<N_APPEARANCE> {
     let mut d = [0.0; N_APPEARANCE];
-    for j in 0..used {
+    for j in 0..K {
         d[map[j]] += x.d[j];
     }
     Dual { v: x.v, d }
@@ -165,7 +166,7 @@ fn refract_gradient(g: &GradientParams, vx: &PathVertex, thr: &mut [Dual<N_APPEA
     };
     let (alpha, eta, map) = g.kind2(vx.kind);
     let w2 = transmit_cos(vx.v, l, alpha, eta) * (1.0 / pdf);
-    let w = lift(w2, map, 2);
+    let w = lift(w2, map);
     for k in 0..3 {
         thr[k] *= col[k] * w * vx.rr;
     }
@@ -219,20 +220,17 @@ fn vertex_gradient(
         }
     }
     let p = &g.full;
-    let fam = match vx.family {
-        Family::Weft => 0,
-        Family::Warp => 1,
-    };
+    let fam = vx.family.index();
     let t_col = match vx.kind {
         VertexKind::X => p.t_s,
         VertexKind::Y => p.t_s_y,
     };
     let shadow = shadow_factor(p.g_p, vx.ao_p) * shadow_factor(p.g_f, vx.ao_f);
-    let enter = lift(entering(vx.v.z, alpha, eta), map, 2) * shadow;
+    let enter = lift(entering(vx.v.z, alpha, eta), map) * shadow;
     let spec = std::array::from_fn(|k| {
-        let t = t_col[k] * lift(trans[k], map, 2);
+        let t = t_col[k] * lift(trans[k], map);
         if vx.kind == VertexKind::X {
-            t + p.r_s[k] * lift(refl[k], map, 2)
+            t + p.r_s[k] * lift(refl[k], map)
         } else {
             t
         }

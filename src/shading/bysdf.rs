@@ -191,7 +191,7 @@ impl<T: Real> VertexTerms<T> {
     /// The terms at a vertex of `kind` on a yarn of `family`, seen from local direction `v`,
     /// with ply and fiber AO `ao_p`, `ao_f`.
     pub fn new(p: &ShadeParams<T>, kind: VertexKind, family: Family, v: Vec3, ao_p: f32, ao_f: f32) -> Self {
-        let fam = family_index(family);
+        let fam = family.index();
         let (alpha, eta, t_col) = match kind {
             VertexKind::X => (p.alpha, p.eta, p.t_s),
             VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
@@ -287,13 +287,6 @@ pub fn light_terms<T: Real>(kind: VertexKind, dirs: LocalDirs, alpha: T, eta: T)
     }
 }
 
-fn family_index(family: Family) -> usize {
-    match family {
-        Family::Weft => 0,
-        Family::Warp => 1,
-    }
-}
-
 /// Evaluate the BYSDF times `|c_l|` at a vertex.
 pub fn eval<T: Real>(
     p: &ShadeParams<T>,
@@ -316,7 +309,7 @@ pub fn eval_with<T: Real>(
     pre: &VertexTerms<T>,
 ) -> Lobes<T> {
     let zero = [T::c(0.0); 3];
-    let fam = family_index(family);
+    let fam = family.index();
     let (alpha, eta, t_col) = match kind {
         VertexKind::X => (p.alpha, p.eta, p.t_s),
         VertexKind::Y => (p.alpha_y, p.eta_y, p.t_s_y),
