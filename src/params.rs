@@ -502,6 +502,18 @@ impl ClothParams {
         }
         if let Some(t) = &self.body_texture {
             t.validate()?;
+            // The texture is laid over the pattern tile with the same number of texels per cell
+            // along both axes (`BodyTexture::ones`).
+            let (n_e, n_a) = (self.pattern.n_e() as u32, self.pattern.n_a() as u32);
+            if t.width % n_a != 0 || t.height % n_e != 0 || t.width / n_a != t.height / n_e {
+                return Err(ParamError::Invalid {
+                    field: "body_texture".into(),
+                    msg: format!(
+                        "{}×{} texels do not fit the {n_e}×{n_a} pattern tile (k texels per cell: k·{n_a} × k·{n_e})",
+                        t.width, t.height
+                    ),
+                });
+            }
         }
         let (c, a) = (YarnShape::CROSSING_RANGE, YarnShape::ASPECT_RANGE);
         check_range("shape.crossing", self.shape.crossing as f64, c.0 as f64, c.1 as f64)?;
@@ -630,7 +642,12 @@ impl Default for Appearance {
 impl ParamFile {
     /// Parse and validate JSON text.
     pub fn from_json(text: &str) -> Result<Self, ParamError> {
-        let p: ParamFile = serde_json::from_str(text)?;
+        let mut p: ParamFile = serde_json::from_str(text)?;
+        // The pattern is the minimum repeat, except under a body texture, which is laid over the
+        // tile as written (a yarn-dyed stripe repeats over more yarns than the weave).
+        if p.cloth.body_texture.is_none() {
+            p.cloth.pattern = p.cloth.pattern.reduced();
+        }
         p.validate()?;
         Ok(p)
     }
@@ -800,5 +817,25 @@ mod tests {
         assert!(matches!(ParamFile::load(&huge), Err(ParamError::Io { .. })));
         let e = ParamFile::load(&dir.path().join("none.json")).unwrap_err().to_string();
         assert!(e.contains("none.json"), "{e}");
+    }
+
+    /// A file's pattern is reduced to its minimum repeat unless a body texture is laid over it:
+    /// a yarn-dyed stripe over six wefts of a plain weave keeps its 6 × 2 tile through a save and
+    /// a load, and a texture that does not fit the tile is refused.
+    #[test]
+    fn a_textured_file_keeps_its_tile_and_an_untextured_one_is_reduced() {
+        let rows: Vec<Vec<bool>> = (0..6).map(|i| vec![i % 2 == 0, i % 2 == 1]).collect();
+        let tile = WeavePattern::from_rows_unreduced(&rows).unwrap();
+        let mut p = ParamFile { cloth: ClothParams::preset("plain").unwrap(), scene: Scene::default() };
+        p.cloth.pattern = tile.clone();
+        let reduced = ParamFile::from_json(&p.to_json()).unwrap();
+        assert_eq!((reduced.cloth.pattern.n_e(), reduced.cloth.pattern.n_a()), (2, 2));
+        let mut tex = BodyTexture::ones(6, 2, 1);
+        tex.weft[4] = [0.2, 0.3, 0.9];
+        p.cloth.body_texture = Some(tex);
+        assert_eq!(ParamFile::from_json(&p.to_json()).unwrap(), p);
+        p.cloth.body_texture = Some(BodyTexture::ones(2, 2, 1));
+        let e = ParamFile::from_json(&p.to_json()).unwrap_err().to_string();
+        assert!(e.contains("body_texture") && e.contains("6×2"), "{e}");
     }
 }

@@ -105,8 +105,15 @@ impl WeavePattern {
         Ok(WeavePattern { rows: rows.len(), cols, cells: rows.concat() })
     }
 
-    /// Parse `1100/0110/0011/1001` (rows separated by `/`, `,`, `;` or newlines; spaces ignored).
+    /// Parse `1100/0110/0011/1001` (rows separated by `/`, `,`, `;` or newlines; spaces ignored),
+    /// reduced to the minimum repeat.
     pub fn parse(text: &str) -> Result<Self, PatternError> {
+        Ok(Self::parse_unreduced(text)?.reduced())
+    }
+
+    /// [`WeavePattern::parse`] keeping the tile as written: a parameter file's pattern is the tile
+    /// its body texture is laid over (a yarn-dyed stripe repeats over more yarns than the weave).
+    pub fn parse_unreduced(text: &str) -> Result<Self, PatternError> {
         let mut rows = Vec::new();
         for line in text.split(['/', ',', ';', '\n']) {
             let line: String = line.chars().filter(|c| !c.is_whitespace()).collect();
@@ -123,7 +130,7 @@ impl WeavePattern {
             }
             rows.push(row);
         }
-        Self::from_rows(&rows)
+        Self::from_rows_unreduced(&rows)
     }
 
     /// Resolve a command-line spec: a preset name, a text grid, a text file of 0/1 rows, or a PNG.
@@ -427,7 +434,7 @@ impl Serialize for WeavePattern {
 impl<'de> Deserialize<'de> for WeavePattern {
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let rows = Vec::<String>::deserialize(d)?;
-        WeavePattern::parse(&rows.join("/")).map_err(|e| serde::de::Error::custom(format!("pattern: {e}")))
+        WeavePattern::parse_unreduced(&rows.join("/")).map_err(|e| serde::de::Error::custom(format!("pattern: {e}")))
     }
 }
 

@@ -276,6 +276,36 @@ fn a_yarn_dyed_plain_photo_is_two_by_two() {
     assert_eq!((p.n_e, p.n_a), (2, 2));
 }
 
+/// A gingham: a plain weave whose warps and wefts are dyed two white, two red (a 4 × 4 colour
+/// tile over the 2 × 2 weave). The grey, flattened repeat search sees the weave; the yarns'
+/// colours repeat over 4 (`prep::colour_repeat`), so the crop is the colours' 4 × 4 repeat and
+/// the weave's 2 × 2 is kept beside it. The same cloth undyed keeps its 2 × 2 crop.
+#[test]
+fn a_gingham_is_cropped_at_its_colour_repeat_and_keeps_its_weave_repeat() {
+    let mut cloth = ClothParams::preset("plain").unwrap();
+    let rows: Vec<Vec<bool>> = (0..4).map(|i| (0..4).map(|j| (i + j) % 2 == 0).collect()).collect();
+    cloth.pattern = woven::WeavePattern::from_rows_unreduced(&rows).unwrap();
+    let (white, red) = ([1.0, 1.0, 1.0], [0.9, 0.12, 0.15]);
+    let dyed = |k: usize| if k < 2 { white } else { red };
+    cloth.appearance.r_b_e = [0.85, 0.85, 0.8];
+    cloth.appearance.r_b_a = [0.85, 0.85, 0.8];
+    cloth.appearance.s_b_e = [0.8; 3];
+    cloth.appearance.s_b_a = [0.8; 3];
+    let mut tex = woven::params::BodyTexture::ones(4, 4, 1);
+    for i in 0..16 {
+        tex.weft[i] = dyed(i / 4);
+        tex.warp[i] = dyed(i % 4);
+    }
+    cloth.body_texture = Some(tex);
+    let lights = LightRig::named("default").unwrap();
+    let p =
+        prepare(&render_view(&cloth, lights.clone(), 256, 4, 4.0, 0.0).to_rgb32f(), &PrepOptions::default()).unwrap();
+    assert_eq!((p.n_e, p.n_a, p.weave_repeat), (4, 4, Some([2, 2])), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    cloth.body_texture = None;
+    let p = prepare(&render_view(&cloth, lights, 256, 4, 4.0, 0.0).to_rgb32f(), &PrepOptions::default()).unwrap();
+    assert_eq!((p.n_e, p.n_a, p.weave_repeat), (2, 2, None));
+}
+
 /// Sharpness of prepared crops, for docs/prep.md: for every `<dir>/<name>/crop.png` of the
 /// folders in `WOVEN_PREP_DIRS` (comma-separated, e.g. `woven prep` outputs before and after a
 /// change), the high-frequency energy ratio (variance of grey − its σ = 2 px blur, over the grey

@@ -116,6 +116,11 @@ pub struct FitArgs {
     /// fit the render noise of the recorded paths instead of the cloth).
     #[arg(long)]
     pub svcolor: bool,
+    /// Keep one body colour per yarn family: do not try yarn-dyed colours (one per warp and weft
+    /// yarn of the repeat, for stripes and checks; otherwise kept where they lower the loss by a
+    /// fifth).
+    #[arg(long)]
+    pub uniform_colours: bool,
 }
 
 impl FitArgs {
@@ -147,6 +152,7 @@ impl FitArgs {
         o.render.seed = self.seed;
         o.control.threads = self.threads;
         o.finish.svcolor = u32::from(self.svcolor);
+        o.finish.yarn_colours = !self.uniform_colours;
         Ok(o)
     }
 }

@@ -59,6 +59,7 @@ mod shape_extra;
 mod stages;
 pub mod target;
 mod texture;
+mod yarn_dyed;
 
 pub use candidates::{default_twill, template_candidates};
 pub use input::{check_input, MIN_INPUT_SIDE};
@@ -288,6 +289,13 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         if opts.finish.svcolor > 0 {
             cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
             stages.mark("texture", &ev, Some(&cloth));
+        } else if opts.finish.yarn_colours && target.prep.is_some() && opts.pre.enabled {
+            // Stripes and checks: each yarn of the repeat its own colour, where that pays.
+            let weave = target.prep.as_ref().and_then(|p| p.weave_repeat);
+            let (dyed, note) = yarn_dyed::finish_colours(&ev, &cloth, weave, opts.finish.lm_iters, &opts.control.stop);
+            warnings.extend(note);
+            cloth = dyed;
+            stages.mark("yarn colours", &ev, Some(&cloth));
         }
     }
     let t_opt = clock.elapsed().as_secs_f64() - t_prep - t_pre;

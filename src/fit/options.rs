@@ -212,11 +212,15 @@ pub struct FinishOptions {
     /// Spatially varying body colour (paper §7.2): after the finish, optimise per-texel
     /// multipliers of R^B/S^B (this many texels per cell side; 0 = off).
     pub svcolor: u32,
+    /// Yarn-dyed colours (`yarn_dyed`): on a prepared photo, after the finish, one body-colour
+    /// multiplier per warp and weft yarn of the repeat, kept only where it lowers the loss by a
+    /// fifth (stripes, checks). Not with `svcolor`, which is the finer texture.
+    pub yarn_colours: bool,
 }
 
 impl Default for FinishOptions {
     fn default() -> Self {
-        FinishOptions { enabled: true, lm_iters: 6, fine_spp: 16, svcolor: 0 }
+        FinishOptions { enabled: true, lm_iters: 6, fine_spp: 16, svcolor: 0, yarn_colours: true }
     }
 }
 

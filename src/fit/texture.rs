@@ -41,7 +41,7 @@ pub(crate) fn fit_texture(ev: &Evaluator, cloth: &ClothParams, k: u32, iters: us
 /// Gradient of the loss w.r.t. the `n` interleaved texel multipliers from the shaded image and
 /// its texel parts (each pixel's body term per texel slot): the chain rule through the block
 /// mean and the sRGB encoding; clipped pixels carry none.
-fn texel_gradient(ev: &Evaluator, img: &Image, parts: Vec<TexturePart>, n: usize) -> Vec<f32> {
+pub(super) fn texel_gradient(ev: &Evaluator, img: &Image, parts: Vec<TexturePart>, n: usize) -> Vec<f32> {
     let (b, w) = (ev.block(), img.width);
     let blocks = Blocks::new(img.width, img.height, b);
     let f = block_filter(img, b);

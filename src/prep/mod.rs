@@ -19,6 +19,7 @@
 //! yarns, running along image x) and `n_a` columns (warp yarns, running along image y).
 
 pub mod cells;
+pub mod colour_repeat;
 pub mod drift;
 pub mod grid;
 pub mod image_ops;
@@ -235,6 +236,11 @@ pub struct Prepared {
     pub n_e: usize,
     /// Number of warp yarns (pattern columns).
     pub n_a: usize,
+    /// The weave's own repeat `[n_e, n_a]` where the colours repeat over more yarns
+    /// (`colour_repeat`: yarn-dyed stripes and checks; then `n_e`, `n_a` are the colours' repeat,
+    /// a multiple of it); `None` where the weave's repeat is the crop's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub weave_repeat: Option<[usize; 2]>,
     /// Minimum-pattern crop aligned to the yarn boundaries: `n_a` pitches by `n_e` pitches.
     pub crop: CropRect,
     /// Where each repeat of the rectified photo sits against the mean repeat ([`RepeatDrift`]):
@@ -462,6 +468,28 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
             }
         }
     }
+    // 4e. Yarn-dyed stripes and checks: the colours may repeat over a multiple of the weave's
+    //     repeat, which the grey, flattened search above does not see (`colour_repeat`).
+    let (mut weave_n, mut coloured) = ([0usize; 2], false);
+    for (k, (along_y, per, a)) in [(false, &mut per_x, &ax0), (true, &mut per_y, &ay0)].into_iter().enumerate() {
+        if !per.repeated {
+            continue;
+        }
+        let n = n_cells[k].unwrap_or_else(|| (per.period / a.pitch).round() as usize);
+        let c = colour_repeat::yarn_colours(
+            &blurred,
+            [ax0.pitch as f64, ay0.pitch as f64],
+            [ax0.phase as f64, ay0.phase as f64],
+            along_y,
+        );
+        weave_n[k] = n;
+        if let Some(q) = colour_repeat::colour_repeat(&c, n, opts.max_photo_yarns) {
+            *per =
+                period::AxisPeriod { period: q as f32 * per.period / n as f32, strength: per.strength, repeated: true };
+            n_cells[k] = Some(q);
+            coloured = true;
+        }
+    }
     // Without a repeat on either axis the whole image is one repeat, which only a strong yarn grid
     // justifies: noise passes the first structure test often enough (its integral projections
     // have some autocorrelation at any lag) and would otherwise come out as a small random grid.
@@ -530,6 +558,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         grid_strength: [ax0.strength, ay0.strength],
         n_e,
         n_a,
+        weave_repeat: coloured.then_some([weave_n[1], weave_n[0]]),
         crop: CropRect { x: cx, y: cy, w: cw, h: ch },
         drift,
     })
