@@ -247,8 +247,8 @@ fn eval_target(opts: &EvalOptions, i: usize, truth: &ClothParams) -> Result<Eval
         .collect();
     Ok(EvalCase {
         truth: truth.pattern.to_string(),
-        fit: res.params.cloth.pattern.to_string(),
-        exact: res.params.cloth.pattern.equivalent(&truth.pattern),
+        fit: res.params.cloth.pattern.reduced().to_string(),
+        exact: res.params.cloth.pattern.reduced().equivalent(&truth.pattern.reduced()),
         errors,
         psnr_db: res.psnr_db,
         secs,

@@ -236,8 +236,8 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
     match fit(&input, opts) {
         Ok(res) => {
             case.secs = t.elapsed().as_secs_f64();
-            case.fit = res.params.cloth.pattern.to_string();
-            case.exact = res.params.cloth.pattern.equivalent(&truth);
+            case.fit = res.params.cloth.pattern.reduced().to_string();
+            case.exact = res.params.cloth.pattern.reduced().equivalent(&truth.reduced());
             case.crop_psnr_db = res.psnr_db;
             case.row = Some(sheet_row(&res.target, &res.observed_render(), SHEET_ROW_H));
             // Saved, the outputs' registration (one render of the repeat) serves the colours too.
