@@ -266,6 +266,16 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
     if !joint.stopped {
+        if opts.finish.yarn_colours && opts.finish.svcolor == 0 && target.prep.is_some() && opts.pre.enabled {
+            // Stripes and checks: each yarn of the repeat its own colour, where that pays, before
+            // the winner's polish so that the radii and the appearance settle under them; on a
+            // colour tile, the weave-periodic readings of the pattern beside the fitted one.
+            let weave = target.prep.as_ref().and_then(|p| p.weave_repeat);
+            let (dyed, note) = yarn_dyed::finish_colours(&ev, &cloth, weave, opts.finish.lm_iters, &opts.control.stop);
+            warnings.extend(note);
+            cloth = dyed;
+            stages.mark("yarn colours", &ev, Some(&cloth));
+        }
         if twist {
             shape_extra::fit_ply_origin(&ev, &mut cloth);
         }
@@ -289,13 +299,6 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         if opts.finish.svcolor > 0 {
             cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
             stages.mark("texture", &ev, Some(&cloth));
-        } else if opts.finish.yarn_colours && target.prep.is_some() && opts.pre.enabled {
-            // Stripes and checks: each yarn of the repeat its own colour, where that pays.
-            let weave = target.prep.as_ref().and_then(|p| p.weave_repeat);
-            let (dyed, note) = yarn_dyed::finish_colours(&ev, &cloth, weave, opts.finish.lm_iters, &opts.control.stop);
-            warnings.extend(note);
-            cloth = dyed;
-            stages.mark("yarn colours", &ev, Some(&cloth));
         }
     }
     let t_opt = clock.elapsed().as_secs_f64() - t_prep - t_pre;
