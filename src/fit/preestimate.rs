@@ -404,9 +404,9 @@ impl<'a> ScanMemo<'a> {
     }
 }
 
-/// The twist origins one candidate's ply scans found: per ply count, the ply periods of the state
-/// scanned (`shape_extra::ply_periods`) and the origins kept, for [`twist_origin`].
-type TwistMemo = std::sync::Mutex<Vec<(u32, [f32; 2], [f32; 2])>>;
+/// The twist origins one candidate's ply scans found: per ply count and radii of the state
+/// scanned, the origins kept, for [`twist_origin`].
+type TwistMemo = std::sync::Mutex<Vec<((u32, f32, f32), [f32; 2])>>;
 
 /// The shape variants of [`scan_shape`] with the family colours read over the yarn pixels, then
 /// those it finds with every pixel of the cells read, duplicates removed; each with the reading
@@ -555,26 +555,28 @@ fn scan_plies(
 }
 
 /// The twist origin of the ply scan's state `c` (loss `l`), written into `c`; returns its loss.
-/// The first scan of `c`'s ply count for the candidate tries [`TWIST_SCAN_STEPS`] origins per
-/// family (`shape_extra::scan_ply_origin`) and keeps its answer in `origins`; a later one (the
-/// other reading of the family colours, [`shape_variants`]) tries only that answer, carried to
-/// its own common radius (`shape_extra::carry_ply_origin`: the same phase of the twist), against
-/// origin 0 with the scan's margin.
+/// The first scan of `c`'s ply count and common radius for the candidate tries
+/// [`TWIST_SCAN_STEPS`] origins per family (`shape_extra::scan_ply_origin`) and keeps its answer
+/// in `origins`; a later one at the same ply count and radius (the other reading of the family
+/// colours, [`shape_variants`], where it settled on the same common radius) tries only that
+/// answer, against origin 0 with the scan's margin (`shape_extra::try_ply_origin`).
 ///
-/// Why: the twist's phase is the photo's, the same for both readings, which differ in the colour
-/// estimate only; yet each reading's states differ in their colours, so the record memo does
-/// not share them, and the second scan cost as many re-traces as the first (2·(steps − 1) per
-/// ply count). Scanning each ply count once cut the warm-up's re-traces by a fifth at the same
-/// patterns (docs/benchmarks.md, session 20).
+/// Why: the two readings differ in the colour estimate only, so at the same shape the plies'
+/// stripes stand where they do for both; yet the states differ in their colours, so the record
+/// memo does not share them, and the second scan cost as many re-traces as the first
+/// (2·(steps − 1) per ply count). Carrying an origin to the other reading's radius instead (the
+/// same phase of the twist) lost a 2-ply reading on whole-path target 1 (docs/benchmarks.md,
+/// session 20): another radius is scanned anew.
 fn twist_origin(origins: &TwistMemo, c: &mut ClothParams, l: f32, loss: impl FnMut(&mut ClothParams) -> f32) -> f32 {
-    use super::shape_extra::{carry_ply_origin, ply_periods, scan_ply_origin, try_ply_origin};
-    let known = origins.lock().ok().and_then(|m| m.iter().find(|o| o.0 == c.n_p).copied());
+    use super::shape_extra::{scan_ply_origin, try_ply_origin};
+    let shape = (c.n_p, c.r_e, c.r_a);
+    let known = origins.lock().ok().and_then(|m| m.iter().find(|o| o.0 == shape).map(|o| o.1));
     match known {
-        Some((_, from, origin)) => try_ply_origin(c, l, carry_ply_origin(origin, from, ply_periods(c)), loss),
+        Some(origin) => try_ply_origin(c, l, origin, loss),
         None => {
             let l = scan_ply_origin(c, l, TWIST_SCAN_STEPS, loss);
             if let Ok(mut m) = origins.lock() {
-                m.push((c.n_p, ply_periods(c), c.shape.ply_origin));
+                m.push((shape, c.shape.ply_origin));
             }
             l
         }
@@ -681,7 +683,7 @@ mod tests {
     }
 
     #[test]
-    fn a_ply_count_is_scanned_once_per_candidate_and_carried_to_the_other_reading() {
+    fn a_ply_count_is_scanned_once_per_radius_and_candidate() {
         use super::super::shape_extra::ply_periods;
         // A loss that rewards any weft origin past the repeat's edge: the first step of the scan
         // (a quarter period) is kept, nothing after it beats it by the margin.
@@ -697,27 +699,26 @@ mod tests {
         let memo = TwistMemo::default();
         let mut first = default_cloth(WeavePattern::preset("twill22").unwrap());
         (first.n_p, first.r_e, first.r_a) = (2, 3.5, 3.5);
+        let start = first.clone();
         let p = ply_periods(&first);
         assert_eq!(twist_origin(&memo, &mut first, 1.0, loss), 0.5);
         assert_eq!(calls.get(), 2 * (TWIST_SCAN_STEPS - 1));
         assert!((first.shape.ply_origin[0] - p[0] / TWIST_SCAN_STEPS as f32).abs() < 1e-5);
         assert_eq!(first.shape.ply_origin[1], 0.0);
-        // The other reading settled on another common radius: one evaluation, at the same phase
-        // of its own ply period.
-        let mut second = default_cloth(first.pattern.clone());
-        (second.n_p, second.r_e, second.r_a) = (2, 4.0, 4.0);
-        let q = ply_periods(&second);
-        assert_ne!(p[0], q[0]);
+        // The other reading at the same shape: one evaluation, at the origin found.
+        let mut second = start.clone();
         calls.set(0);
         assert_eq!(twist_origin(&memo, &mut second, 1.0, loss), 0.5);
         assert_eq!(calls.get(), 1);
-        assert!((second.shape.ply_origin[0] / q[0] - first.shape.ply_origin[0] / p[0]).abs() < 1e-5);
-        // Another ply count is scanned anew.
-        let mut third = second.clone();
-        (third.n_p, third.shape) = (3, Default::default());
-        calls.set(0);
-        twist_origin(&memo, &mut third, 1.0, loss);
-        assert_eq!(calls.get(), 2 * (TWIST_SCAN_STEPS - 1));
+        assert_eq!(second.shape, first.shape);
+        // Another radius, or another ply count, is scanned anew.
+        for (n_p, r) in [(2, 4.0), (3, 3.5)] {
+            let mut other = start.clone();
+            (other.n_p, other.r_e, other.r_a) = (n_p, r, r);
+            calls.set(0);
+            twist_origin(&memo, &mut other, 1.0, loss);
+            assert_eq!(calls.get(), 2 * (TWIST_SCAN_STEPS - 1), "n_p {n_p}, radius {r}");
+        }
     }
 
     #[test]

@@ -97,14 +97,6 @@ pub(crate) fn ply_periods(cloth: &ClothParams) -> [f32; 2] {
         .map(|family| set.yarns.iter().find(|y| y.family == family).map_or(0.0, |y| model.ply_period(y)))
 }
 
-/// Twist origins found for a cloth whose ply periods were `from` carried to one whose periods
-/// are `to` (the same ply count at another radius): each scaled by the ratio of the periods, so
-/// the plies stand at the same phase of their twist at the repeat's edge, where the origin is
-/// counted from. A family without a period keeps its origin.
-pub(crate) fn carry_ply_origin(origin: [f32; 2], from: [f32; 2], to: [f32; 2]) -> [f32; 2] {
-    [0, 1].map(|k| if from[k] > 0.0 { origin[k] * to[k] / from[k] } else { origin[k] })
-}
-
 /// `cloth` (loss `l0`) with its twist origins set to `origin` where that lowers the loss by more
 /// than [`PLY_ORIGIN_MARGIN`] (one evaluation of `loss`, as in [`scan_ply_origin`]); returns the
 /// loss of the state kept.
