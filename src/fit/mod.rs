@@ -199,7 +199,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         _ => None,
     };
     // A prepared crop starts wherever preparation put it: the warm-up's ply scans also try
-    // where the twist starts (`PreOptions::twist_origin`), and so do the stages after them.
+    // where the twist starts (`PreOptions::twist_origin`), and so does the stage after the view.
     let twist = opts.pre.twist_origin || target.prep.is_some();
     let pre_opts = PreOptions { twist_origin: twist, ..opts.pre.clone() };
     let mut pre = preestimate::pre_estimate(
@@ -238,7 +238,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     if twist && opts.pre.enabled {
         // The crop starts where preparation put it, not at the model's repeat edge: where the
         // ply twist starts along each family is read once here for every start
-        // (`shape_extra::fit_ply_origin`), and again for the winner before its polish.
+        // (`shape_extra::fit_ply_origin`). The same scan of the winner before its polish (session
+        // 19) is gone: on the whole-path eval it changed no pattern and no crop PSNR by more than
+        // the noise, for 14 re-traces (docs/benchmarks.md, session 20).
         shape_extra::fit_ply_origin(&ev, &mut pre.initial);
         let origin = pre.initial.shape.ply_origin;
         pre.starts.iter_mut().chain(pre.warmed.iter_mut()).for_each(|c| c.shape.ply_origin = origin);
@@ -275,9 +277,6 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
             warnings.extend(note);
             cloth = dyed;
             stages.mark("yarn colours", &ev, Some(&cloth));
-        }
-        if twist {
-            shape_extra::fit_ply_origin(&ev, &mut cloth);
         }
         finish::polish_winner(&st, &opts.finish, &mut cloth);
         stages.mark("polish", &ev, Some(&cloth));

@@ -389,11 +389,24 @@ struct Scan<'a> {
     c: u32,
 }
 
-/// The records of one scan view ([`RecordMemo`]) and its pixels per cell.
+/// The records of one scan view ([`RecordMemo`]) and its pixels per cell, with the twist
+/// origins its ply scans found ([`TwistMemo`]).
 struct ScanMemo<'a> {
     memo: RecordMemo<'a>,
     c: u32,
+    origins: TwistMemo,
 }
+
+impl<'a> ScanMemo<'a> {
+    /// An empty memo of the view `ev` at `c` pixels per cell.
+    fn new(ev: &'a Evaluator, c: u32) -> Self {
+        ScanMemo { memo: RecordMemo::new(ev), c, origins: TwistMemo::default() }
+    }
+}
+
+/// The twist origins one candidate's ply scans found: per ply count and radii of the state
+/// scanned, the origins kept, for [`twist_origin`].
+type TwistMemo = std::sync::Mutex<Vec<((u32, f32, f32), [f32; 2])>>;
 
 /// The shape variants of [`scan_shape`] with the family colours read over the yarn pixels, then
 /// those it finds with every pixel of the cells read, duplicates removed; each with the reading
@@ -420,12 +433,12 @@ fn shape_variants(
     // Both scans start from the same cloth and walk the same grids: the states they share are
     // traced once (`RecordMemo`, one per view; one view for both, the default, is one memo, so a
     // state the radius grid and the ply pass share is traced once too).
-    let ply_memo = ScanMemo { memo: RecordMemo::new(plies.ev), c: plies.c };
+    let ply_memo = ScanMemo::new(plies.ev, plies.c);
     let own;
     let radius_memo = if std::ptr::eq(plies.ev, radii.ev) && plies.c == radii.c {
         &ply_memo
     } else {
-        own = ScanMemo { memo: RecordMemo::new(radii.ev), c: radii.c };
+        own = ScanMemo::new(radii.ev, radii.c);
         &own
     };
     let scan = |reading: Reading| scan_shape(&ply_memo, radius_memo, cloth, reading, twist, stop);
@@ -472,7 +485,7 @@ fn scan_shape(
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
     }
-    let (at_common, joint) = scan_plies(plies.memo.ev(), &cl, &ply_loss, twist, stop);
+    let (at_common, joint) = scan_plies(plies.memo.ev(), &cl, &ply_loss, twist.then_some(&plies.origins), stop);
     let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
     let per_family = |base: &ClothParams| {
         let mut cl = base.clone();
@@ -494,20 +507,22 @@ fn scan_shape(
 }
 
 /// Twist origins per family tried with each ply count in [`scan_plies`] (a quarter of a ply
-/// period apart; the fit's scans refine the one kept, `shape_extra::fit_ply_origin`).
+/// period apart; the fit's scan after the view refines the one kept, `shape_extra::fit_ply_origin`).
+/// Three would save 2 re-traces per ply count and candidate, but moved the fit's path: whole-path
+/// target 4 lost 0.4 dB (docs/benchmarks.md, session 20).
 const TWIST_SCAN_STEPS: usize = 4;
 
 /// One pass over `(n_p, radius)`, the common radius of `cl` and ±0.5, serves both the best `n_p`
-/// at that radius and the best pair. With `twist`, each ply count of at least two is scored at
-/// the common radius with the best of [`TWIST_SCAN_STEPS`] twist origins per family
-/// (`shape_extra::scan_ply_origin`): a photo's crop shows its plies' stripes at a phase the
-/// model's origin does not give them, and at that origin the true few plies lose to many fine
-/// ones the blur erases. Returns the two variants of `cl`.
+/// at that radius and the best pair. With `twist` (the candidate's origins so far), each ply
+/// count of at least two is scored at the common radius with its best twist origin
+/// ([`twist_origin`]): a photo's crop shows its plies' stripes at a phase the model's origin
+/// does not give them, and at that origin the true few plies lose to many fine ones the blur
+/// erases. Returns the two variants of `cl`.
 fn scan_plies(
     ev: &Evaluator,
     cl: &ClothParams,
     loss: &impl Fn(&Evaluator, &mut ClothParams) -> f32,
-    twist: bool,
+    twist: Option<&TwistMemo>,
     stop: &AtomicBool,
 ) -> (ClothParams, ClothParams) {
     let (lo, hi) = RADIUS_RANGE;
@@ -523,9 +538,9 @@ fn scan_plies(
             (cand.n_p, cand.r_e, cand.r_a) = (n, r, r);
             let mut l = loss(ev, &mut cand);
             let mut shape = cl.shape;
-            if twist && r == r0 && n >= 2 {
+            if let Some(origins) = twist.filter(|_| r == r0 && n >= 2) {
                 let mut c = cand.clone();
-                l = super::shape_extra::scan_ply_origin(&mut c, l, TWIST_SCAN_STEPS, |v| loss(ev, v));
+                l = twist_origin(origins, &mut c, l, |v| loss(ev, v));
                 shape = c.shape;
             }
             if r == r0 && best_common.is_none_or(|b| l < b) {
@@ -537,6 +552,35 @@ fn scan_plies(
         }
     }
     (at_common, joint)
+}
+
+/// The twist origin of the ply scan's state `c` (loss `l`), written into `c`; returns its loss.
+/// The first scan of `c`'s ply count and common radius for the candidate tries
+/// [`TWIST_SCAN_STEPS`] origins per family (`shape_extra::scan_ply_origin`) and keeps its answer
+/// in `origins`; a later one at the same ply count and radius (the other reading of the family
+/// colours, [`shape_variants`], where it settled on the same common radius) tries only that
+/// answer, against origin 0 with the scan's margin (`shape_extra::try_ply_origin`).
+///
+/// Why: the two readings differ in the colour estimate only, so at the same shape the plies'
+/// stripes stand where they do for both; yet the states differ in their colours, so the record
+/// memo does not share them, and the second scan cost as many re-traces as the first
+/// (2·(steps − 1) per ply count). Carrying an origin to the other reading's radius instead (the
+/// same phase of the twist) lost a 2-ply reading on whole-path target 1 (docs/benchmarks.md,
+/// session 20): another radius is scanned anew.
+fn twist_origin(origins: &TwistMemo, c: &mut ClothParams, l: f32, loss: impl FnMut(&mut ClothParams) -> f32) -> f32 {
+    use super::shape_extra::{scan_ply_origin, try_ply_origin};
+    let shape = (c.n_p, c.r_e, c.r_a);
+    let known = origins.lock().ok().and_then(|m| m.iter().find(|o| o.0 == shape).map(|o| o.1));
+    match known {
+        Some(origin) => try_ply_origin(c, l, origin, loss),
+        None => {
+            let l = scan_ply_origin(c, l, TWIST_SCAN_STEPS, loss);
+            if let Ok(mut m) = origins.lock() {
+                m.push((shape, c.shape.ply_origin));
+            }
+            l
+        }
+    }
 }
 
 #[cfg(test)]
@@ -639,6 +683,45 @@ mod tests {
     }
 
     #[test]
+    fn a_ply_count_is_scanned_once_per_radius_and_candidate() {
+        use super::super::shape_extra::ply_periods;
+        // A loss that rewards any weft origin past the repeat's edge: the first step of the scan
+        // (a quarter period) is kept, nothing after it beats it by the margin.
+        let calls = std::cell::Cell::new(0);
+        let loss = |v: &mut ClothParams| {
+            calls.set(calls.get() + 1);
+            if v.shape.ply_origin[0] > 0.0 {
+                0.5
+            } else {
+                1.0
+            }
+        };
+        let memo = TwistMemo::default();
+        let mut first = default_cloth(WeavePattern::preset("twill22").unwrap());
+        (first.n_p, first.r_e, first.r_a) = (2, 3.5, 3.5);
+        let start = first.clone();
+        let p = ply_periods(&first);
+        assert_eq!(twist_origin(&memo, &mut first, 1.0, loss), 0.5);
+        assert_eq!(calls.get(), 2 * (TWIST_SCAN_STEPS - 1));
+        assert!((first.shape.ply_origin[0] - p[0] / TWIST_SCAN_STEPS as f32).abs() < 1e-5);
+        assert_eq!(first.shape.ply_origin[1], 0.0);
+        // The other reading at the same shape: one evaluation, at the origin found.
+        let mut second = start.clone();
+        calls.set(0);
+        assert_eq!(twist_origin(&memo, &mut second, 1.0, loss), 0.5);
+        assert_eq!(calls.get(), 1);
+        assert_eq!(second.shape, first.shape);
+        // Another radius, or another ply count, is scanned anew.
+        for (n_p, r) in [(2, 4.0), (3, 3.5)] {
+            let mut other = start.clone();
+            (other.n_p, other.r_e, other.r_a) = (n_p, r, r);
+            calls.set(0);
+            twist_origin(&memo, &mut other, 1.0, loss);
+            assert_eq!(calls.get(), 2 * (TWIST_SCAN_STEPS - 1), "n_p {n_p}, radius {r}");
+        }
+    }
+
+    #[test]
     fn default_cloth_is_grey_with_table_defaults() {
         let c = default_cloth(WeavePattern::preset("plain").unwrap());
         assert_eq!((c.n_p, c.n_f, c.r_e, c.r_a), (3, 30, 4.0, 4.0));
@@ -732,7 +815,7 @@ mod tests {
         // The yarn-pixel reading alone (session 11 to 14) leaves the glowing edges out and
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
         let fine = Scan { ev: &ev, c };
-        let memo = || ScanMemo { memo: RecordMemo::new(&ev), c };
+        let memo = || ScanMemo::new(&ev, c);
         let yarn = scan_shape(&memo(), &memo(), &start, Reading::YarnPixels, false, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
         let all: Vec<ClothParams> = shape_variants(fine, fine, &start, false, &stop).into_iter().map(|v| v.0).collect();

@@ -71,16 +71,9 @@ pub(crate) fn scan_ply_origin(
     steps: usize,
     mut loss: impl FnMut(&mut ClothParams) -> f32,
 ) -> f32 {
-    let set = YarnSet::with_shape(&cloth.pattern, cloth.r_e, cloth.r_a, cloth.shape);
-    let model = PlyModel { n_p: cloth.n_p, n_f: cloth.n_f };
-    let periods: Vec<(usize, f32)> = [Family::Weft, Family::Warp]
-        .into_iter()
-        .filter_map(|family| {
-            set.yarns.iter().find(|y| y.family == family).map(|y| (family.index(), model.ply_period(y)))
-        })
-        .collect();
+    let periods = ply_periods(cloth);
     let mut best = (l0, cloth.clone());
-    for (k, period) in periods {
+    for (k, period) in periods.into_iter().enumerate().filter(|(_, p)| *p > 0.0) {
         let start = best.1.shape.ply_origin[k];
         for step in 1..steps.max(1) {
             let mut c = best.1.clone();
@@ -93,6 +86,37 @@ pub(crate) fn scan_ply_origin(
     }
     *cloth = best.1;
     best.0
+}
+
+/// The ply period ([`PlyModel::ply_period`]) of each family of `cloth`, `[weft, warp]` as
+/// [`YarnShape::ply_origin`]; 0 for a family without a yarn.
+pub(crate) fn ply_periods(cloth: &ClothParams) -> [f32; 2] {
+    let set = YarnSet::with_shape(&cloth.pattern, cloth.r_e, cloth.r_a, cloth.shape);
+    let model = PlyModel { n_p: cloth.n_p, n_f: cloth.n_f };
+    [Family::Weft, Family::Warp]
+        .map(|family| set.yarns.iter().find(|y| y.family == family).map_or(0.0, |y| model.ply_period(y)))
+}
+
+/// `cloth` (loss `l0`) with its twist origins set to `origin` where that lowers the loss by more
+/// than [`PLY_ORIGIN_MARGIN`] (one evaluation of `loss`, as in [`scan_ply_origin`]); returns the
+/// loss of the state kept.
+pub(crate) fn try_ply_origin(
+    cloth: &mut ClothParams,
+    l0: f32,
+    origin: [f32; 2],
+    mut loss: impl FnMut(&mut ClothParams) -> f32,
+) -> f32 {
+    if origin == cloth.shape.ply_origin {
+        return l0;
+    }
+    let mut c = cloth.clone();
+    c.shape.ply_origin = origin;
+    let l = loss(&mut c);
+    if l.is_finite() && l < l0 * (1.0 - PLY_ORIGIN_MARGIN) {
+        *cloth = c;
+        return l;
+    }
+    l0
 }
 
 #[cfg(test)]
