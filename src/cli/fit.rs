@@ -116,6 +116,10 @@ pub struct FitArgs {
     /// fit the render noise of the recorded paths instead of the cloth).
     #[arg(long)]
     pub svcolor: bool,
+    /// Keep the light rig's direction as given (by default a prepared photo's rig is turned about
+    /// the cloth normal, and its front light tilted, where that lowers the loss).
+    #[arg(long)]
+    pub fixed_light: bool,
 }
 
 impl FitArgs {
@@ -147,6 +151,7 @@ impl FitArgs {
         o.render.seed = self.seed;
         o.control.threads = self.threads;
         o.finish.svcolor = u32::from(self.svcolor);
+        o.finish.light_direction = !self.fixed_light;
         Ok(o)
     }
 }

@@ -212,11 +212,15 @@ pub struct FinishOptions {
     /// Spatially varying body colour (paper §7.2): after the finish, optimise per-texel
     /// multipliers of R^B/S^B (this many texels per cell side; 0 = off).
     pub svcolor: u32,
+    /// On a prepared photo, turn the light rig about the cloth normal and tilt its front light
+    /// where that lowers the loss, before the winner's polish (`refine::fit_light_direction`):
+    /// the photo's light comes from wherever it was put, the rig's from one fixed direction.
+    pub light_direction: bool,
 }
 
 impl Default for FinishOptions {
     fn default() -> Self {
-        FinishOptions { enabled: true, lm_iters: 6, fine_spp: 16, svcolor: 0 }
+        FinishOptions { enabled: true, lm_iters: 6, fine_spp: 16, svcolor: 0, light_direction: true }
     }
 }
 
