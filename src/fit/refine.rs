@@ -539,7 +539,11 @@ mod tests {
         let rig = LightRig::default_rig();
         let t = turned_rig(&rig, 90.0);
         for (a, b) in rig.lights.iter().zip(&t.lights) {
-            let (crate::scene::LightSpec::Directional { direction: d0, .. }, crate::scene::LightSpec::Directional { direction: d1, .. }) = (a, b) else {
+            let (
+                crate::scene::LightSpec::Directional { direction: d0, .. },
+                crate::scene::LightSpec::Directional { direction: d1, .. },
+            ) = (a, b)
+            else {
                 panic!("the default rig is directional");
             };
             // (x, y) → (−y, x), z kept.
