@@ -121,6 +121,10 @@ pub struct FitArgs {
     /// fifth).
     #[arg(long)]
     pub uniform_colours: bool,
+    /// Keep the light rig's direction as given (by default a prepared photo's rig is turned about
+    /// the cloth normal, and its front light tilted, where that lowers the loss).
+    #[arg(long)]
+    pub fixed_light: bool,
 }
 
 impl FitArgs {
@@ -153,6 +157,7 @@ impl FitArgs {
         o.control.threads = self.threads;
         o.finish.svcolor = u32::from(self.svcolor);
         o.finish.yarn_colours = !self.uniform_colours;
+        o.finish.light_direction = !self.fixed_light;
         Ok(o)
     }
 }

@@ -267,6 +267,18 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     }
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
+    // A photo's light direction, scanned once the pattern is settled and before the polish, so
+    // that the radii, the twist origin and the shape are fitted under the light that was kept
+    // (`refine::fit_light_direction`); a one-repeat render keeps the rig it was given.
+    let scan_light = !joint.stopped && target.prep.is_some() && opts.pre.enabled && opts.finish.light_direction;
+    let lit = scan_light
+        .then(|| refine::fit_light_direction(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
+        .flatten();
+    if scan_light {
+        stages.mark("light", lit.as_ref().unwrap_or(&ev), Some(&cloth));
+    }
+    let ev = lit.unwrap_or(ev);
+    let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     if !joint.stopped {
         if opts.finish.yarn_colours && opts.finish.svcolor == 0 && target.prep.is_some() && opts.pre.enabled {
             // Stripes and checks: each yarn of the repeat its own colour, where that pays, before

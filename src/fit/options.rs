@@ -216,11 +216,22 @@ pub struct FinishOptions {
     /// multiplier per warp and weft yarn of the repeat, kept only where it lowers the loss by a
     /// fifth (stripes, checks). Not with `svcolor`, which is the finer texture.
     pub yarn_colours: bool,
+    /// On a prepared photo, turn the light rig about the cloth normal and tilt its front light
+    /// where that lowers the loss, before the winner's polish (`refine::fit_light_direction`):
+    /// the photo's light comes from wherever it was put, the rig's from one fixed direction.
+    pub light_direction: bool,
 }
 
 impl Default for FinishOptions {
     fn default() -> Self {
-        FinishOptions { enabled: true, lm_iters: 6, fine_spp: 16, svcolor: 0, yarn_colours: true }
+        FinishOptions {
+            enabled: true,
+            lm_iters: 6,
+            fine_spp: 16,
+            svcolor: 0,
+            yarn_colours: true,
+            light_direction: true,
+        }
     }
 }
 

@@ -181,6 +181,111 @@ pub(super) fn trade_exposure(
     kept
 }
 
+/// Azimuths (degrees about the cloth normal) by which [`fit_light_direction`] turns the light rig.
+const RIG_TURNS_DEG: [f32; 7] = [45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0];
+/// The step between [`RIG_TURNS_DEG`].
+const RIG_TURN_STEP_DEG: f32 = 45.0;
+/// Elevations (degrees above the cloth plane) [`fit_light_direction`] tries for the light named
+/// `front` once the rig's azimuth is chosen (the default rig's front light stands at 66.7°).
+const FRONT_ELEVATIONS_DEG: [f32; 2] = [42.0, 84.0];
+/// Relative drop of the loss a turned or tilted rig must give to be kept: the re-trace under
+/// another light is a new sample of the paths, so a change smaller than the noise of a loss
+/// estimate is no evidence about the light.
+const LIGHT_MIN_GAIN: f32 = 0.03;
+
+/// `rig` turned by `deg` about the cloth normal (the z axis): every directional light's
+/// direction and every point light's position rotated in the cloth plane.
+pub(super) fn turned_rig(rig: &crate::scene::LightRig, deg: f32) -> crate::scene::LightRig {
+    use crate::scene::LightSpec;
+    let (s, c) = deg.to_radians().sin_cos();
+    let turn = |v: [f32; 3]| [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
+    let mut out = rig.clone();
+    for l in &mut out.lights {
+        match l {
+            LightSpec::Directional { direction, .. } => *direction = turn(*direction),
+            LightSpec::Point { position, .. } => *position = turn(*position),
+        }
+    }
+    out
+}
+
+/// `rig` with the directional light named `front` raised or lowered to `elev_deg` above the
+/// cloth plane, its azimuth kept; `None` when the rig has no such light.
+pub(super) fn front_at_elevation(rig: &crate::scene::LightRig, elev_deg: f32) -> Option<crate::scene::LightRig> {
+    use crate::scene::LightSpec;
+    let mut out = rig.clone();
+    let front = out.lights.iter_mut().find_map(|l| match l {
+        LightSpec::Directional { name, direction, .. } if name == "front" && direction[2] > 0.0 => Some(direction),
+        _ => None,
+    })?;
+    let az = front[1].atan2(front[0]);
+    let (se, ce) = elev_deg.to_radians().sin_cos();
+    *front = [ce * az.cos(), ce * az.sin(), se];
+    Some(out)
+}
+
+/// The light rig turned about the cloth normal (the [`RIG_TURNS_DEG`] azimuths, then half a step
+/// either side of the best of them and of the rig as given), then the front
+/// light raised or lowered ([`FRONT_ELEVATIONS_DEG`]), each candidate re-traced and its
+/// appearance given `iters` Levenberg–Marquardt iterations; a candidate is kept when its loss
+/// (MSE + barrier) is [`LIGHT_MIN_GAIN`] below the best so far after the same iterations. Returns
+/// the evaluator under the kept rig (its re-traces count on `ev`'s counter), or `None` when the
+/// rig stays; `cloth` holds the appearance that goes with the returned evaluator (or `ev`).
+///
+/// Why: the fit's rig is fixed in the model's frame (the default rig's front light comes from
+/// azimuth −54°, elevation 67°), but a photo's light comes from wherever the photographer put it,
+/// and preparation turns the picture to its yarns, which turns the light with it. Under a light
+/// from the other side each yarn is lit on the flank the model shades and shaded where the model
+/// lights it; the colours cannot undo that, so the fit moves the geometry instead (thicker or
+/// thinner yarns, a phase a fraction of a cell off: session 18's "each warp rises sharply out of
+/// the gap on its lit flank"), and the crop PSNR stays low on renders whose key light has a
+/// random azimuth (the cross-renderer sets draw it uniformly over 360°, elevation 35–80°).
+pub(super) fn fit_light_direction(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    iters: usize,
+    stop: &AtomicBool,
+) -> Option<Evaluator> {
+    let base = ev.scene().lights.clone();
+    let mut best_loss = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
+    let mut kept: Option<Evaluator> = None;
+    // Re-trace under `rig`, polish the appearance, keep it when it beats the best by the margin;
+    // true when kept.
+    let mut try_rig = |rig: crate::scene::LightRig, best_loss: &mut f32, kept: &mut Option<Evaluator>| {
+        if stop.load(Ordering::Relaxed) {
+            return false;
+        }
+        let scene = crate::scene::Scene { lights: rig, ..ev.scene().clone() };
+        let next = ev.sibling(scene, ev.target().clone(), ev.block());
+        let mut cand = cloth.clone();
+        let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+        // A NaN loss is not below: the candidate is not kept.
+        let better = l < (1.0 - LIGHT_MIN_GAIN) * *best_loss;
+        if better {
+            (*best_loss, *cloth, *kept) = (l, cand, Some(next));
+        }
+        better
+    };
+    let mut turn = 0.0;
+    for deg in RIG_TURNS_DEG {
+        if try_rig(turned_rig(&base, deg), &mut best_loss, &mut kept) {
+            turn = deg;
+        }
+    }
+    // Half a step either side of the best turn (the shading changes smoothly with the light's
+    // azimuth: the coarse scan finds the basin, these its floor).
+    for half in [-0.5, 0.5] {
+        try_rig(turned_rig(&base, turn + half * RIG_TURN_STEP_DEG), &mut best_loss, &mut kept);
+    }
+    let turned = kept.as_ref().map_or(base, |k| k.scene().lights.clone());
+    for elev in FRONT_ELEVATIONS_DEG {
+        if let Some(rig) = front_at_elevation(&turned, elev) {
+            try_rig(rig, &mut best_loss, &mut kept);
+        }
+    }
+    kept
+}
+
 /// Floor of the damping term `ε` added to the scaled Hessian's diagonal. [`lm::minimize`] takes
 /// `ε = max(1e-6·max diag, floor)`; with this floor that is `1e-6·max(max diag, 1e-12)` bit for
 /// bit (rounding is monotone), the polish's damping since it was written. `LmOptions`'s default
@@ -427,5 +532,70 @@ mod tests {
         assert!(!body_colour_at_bound(&inside.appearance));
         assert!(trade_exposure(&ev, &mut inside, 8, &stop).is_none());
         assert_eq!(inside.appearance.r_b_e, truth.appearance.r_b_e);
+    }
+
+    #[test]
+    fn a_turned_rig_keeps_its_elevations_and_turns_its_azimuths() {
+        let rig = LightRig::default_rig();
+        let t = turned_rig(&rig, 90.0);
+        for (a, b) in rig.lights.iter().zip(&t.lights) {
+            let (
+                crate::scene::LightSpec::Directional { direction: d0, .. },
+                crate::scene::LightSpec::Directional { direction: d1, .. },
+            ) = (a, b)
+            else {
+                panic!("the default rig is directional");
+            };
+            // (x, y) → (−y, x), z kept.
+            assert!((d1[0] + d0[1]).abs() < 1e-6 && (d1[1] - d0[0]).abs() < 1e-6 && d1[2] == d0[2], "{d0:?} {d1:?}");
+        }
+        let full = turned_rig(&rig, 360.0);
+        assert!(full.lights.iter().zip(&rig.lights).all(|(a, b)| match (a, b) {
+            (
+                crate::scene::LightSpec::Directional { direction: x, .. },
+                crate::scene::LightSpec::Directional { direction: y, .. },
+            ) => x.iter().zip(y).all(|(u, v)| (u - v).abs() < 1e-5),
+            _ => false,
+        }));
+        let low = front_at_elevation(&rig, 30.0).expect("the default rig has a front light");
+        let crate::scene::LightSpec::Directional { direction: d, .. } = &low.lights[0] else { panic!() };
+        let elev = d[2].atan2(d[0].hypot(d[1])).to_degrees();
+        assert!((elev - 30.0).abs() < 1e-3, "{elev}");
+        // Same azimuth as the rig's front light (0.25, −0.35).
+        assert!((d[1].atan2(d[0]) - (-0.35f32).atan2(0.25)).abs() < 1e-5);
+        assert!(front_at_elevation(&LightRig::named("back").unwrap(), 30.0).is_none());
+    }
+
+    #[test]
+    fn a_cloth_lit_from_another_side_gets_its_rig_turned() {
+        // The demo cloth rendered under the front rig turned by 180° (light from the other side),
+        // fitted under the rig as given: the scan turns the rig back to where the light was and
+        // the loss drops; a cloth rendered under the rig as given keeps it.
+        let truth = crate::fit::demo::demo_cloth();
+        let front = LightRig::named("front").unwrap();
+        let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, &front);
+        let lit = crate::scene::Scene { lights: turned_rig(&front, 180.0), ..scene.clone() };
+        let target = Evaluator::of_own_render(&truth, lit).target().clone();
+        let ev = Evaluator::new(scene.clone(), target, 2);
+        let stop = AtomicBool::new(false);
+        let mut held = truth.clone();
+        let l_held = lm_appearance(&ev, &ev.record(&held), &mut held, 6, &stop);
+        let mut cloth = truth.clone();
+        let kept = fit_light_direction(&ev, &mut cloth, 6, &stop).expect("a turned rig is kept");
+        let crate::scene::LightSpec::Directional { direction: d, .. } = &kept.scene().lights.lights[0] else {
+            panic!()
+        };
+        let az = d[1].atan2(d[0]).to_degrees();
+        let want = 0.35f32.atan2(-0.25).to_degrees();
+        let off = (az - want).rem_euclid(360.0);
+        assert!(off.min(360.0 - off) <= 45.0 + 1e-3, "azimuth {az} (light at {want})");
+        let l = total_loss(kept.trace_mse(&cloth), &cloth.appearance.to_vec());
+        assert!(l < 0.7 * l_held, "turned {l} vs held {l_held}");
+        assert_eq!(kept.traces().count(), ev.traces().count());
+        // Lit as the rig says: nothing is kept.
+        let same = Evaluator::of_own_render(&truth, scene.clone()).target().clone();
+        let ev = Evaluator::new(scene, same, 2);
+        let mut c = truth.clone();
+        assert!(fit_light_direction(&ev, &mut c, 6, &stop).is_none());
     }
 }
