@@ -173,8 +173,11 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     } else {
         (0, 0)
     };
+    // A prepared photo with pre-estimation: the stages that read the photo's own capture (its
+    // exposure, view, light direction, yarn colours) run only then.
+    let photo = target.prep.is_some() && opts.pre.enabled;
     let mut scene = target::fit_scene(n_e, n_a, r.px_per_cell, r.spp, r.seed, &r.lights);
-    if target.prep.is_some() && opts.pre.enabled {
+    if photo {
         scene.exposure = preestimate::exposure_for(
             &target.image,
             &preestimate::default_cloth(pattern0.clone()),
@@ -213,7 +216,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     )?;
     // With preparation, the pre-estimate settles the view: the last pixel of the phase and the
     // photo's own blur (`preestimate::fit_view`).
-    let (ev, view) = if target.prep.is_some() && opts.pre.enabled {
+    let (ev, view) = if photo {
         let (shift, blur) = if st0.cells {
             let cue = cues.as_ref().map(|c| &c.1.pattern);
             reading_view_contest(&ev0, &mut pre, cue, target.blur_px, opts.pre.warmup, &opts.control.stop)
@@ -232,7 +235,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     };
     let phase_shift = (phase_shift.0 + view.0 .0, phase_shift.1 + view.0 .1);
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
-    if target.prep.is_some() && opts.pre.enabled {
+    if photo {
         stages.mark("view", &ev, Some(&pre.initial));
     }
     if twist && opts.pre.enabled {
@@ -270,7 +273,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // A photo's light direction, scanned once the pattern is settled and before the polish, so
     // that the radii, the twist origin and the shape are fitted under the light that was kept
     // (`refine::fit_light_direction`); a one-repeat render keeps the rig it was given.
-    let scan_light = !joint.stopped && target.prep.is_some() && opts.pre.enabled && opts.finish.light_direction;
+    let scan_light = !joint.stopped && photo && opts.finish.light_direction;
     let lit = scan_light
         .then(|| refine::fit_light_direction(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
         .flatten();
@@ -280,7 +283,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let ev = lit.unwrap_or(ev);
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     if !joint.stopped {
-        if opts.finish.yarn_colours && opts.finish.svcolor == 0 && target.prep.is_some() && opts.pre.enabled {
+        if photo && opts.finish.yarn_colours && opts.finish.svcolor == 0 {
             // Stripes and checks: each yarn of the repeat its own colour, where that pays, before
             // the winner's polish so that the radii and the appearance settle under them; on a
             // colour tile, the weave-periodic readings of the pattern beside the fitted one.
@@ -301,7 +304,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     }
     // A photo's exposure, set once before the fit, traded against body colours left at their
     // bound (`refine::trade_exposure`); a one-repeat render keeps the model's unit exposure.
-    let traded = (!joint.stopped && target.prep.is_some() && opts.pre.enabled)
+    let traded = (!joint.stopped && photo)
         .then(|| refine::trade_exposure(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
         .flatten();
     let ev = traded.unwrap_or(ev);

@@ -181,9 +181,8 @@ pub(super) fn trade_exposure(
     kept
 }
 
-/// Azimuths (degrees about the cloth normal) by which [`fit_light_direction`] turns the light rig.
-const RIG_TURNS_DEG: [f32; 7] = [45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0];
-/// The step between [`RIG_TURNS_DEG`].
+/// The step of the azimuths (degrees about the cloth normal) by which [`fit_light_direction`]
+/// turns the light rig: every multiple of it below a full turn.
 const RIG_TURN_STEP_DEG: f32 = 45.0;
 /// Elevations (degrees above the cloth plane) [`fit_light_direction`] tries for the light named
 /// `front` once the rig's azimuth is chosen (the default rig's front light stands at 66.7°).
@@ -224,7 +223,7 @@ pub(super) fn front_at_elevation(rig: &crate::scene::LightRig, elev_deg: f32) ->
     Some(out)
 }
 
-/// The light rig turned about the cloth normal (the [`RIG_TURNS_DEG`] azimuths, then half a step
+/// The light rig turned about the cloth normal (every multiple of [`RIG_TURN_STEP_DEG`], then half a step
 /// either side of the best of them and of the rig as given), then the front
 /// light raised or lowered ([`FRONT_ELEVATIONS_DEG`]), each candidate re-traced and its
 /// appearance given `iters` Levenberg–Marquardt iterations; a candidate is kept when its loss
@@ -267,7 +266,7 @@ pub(super) fn fit_light_direction(
         better
     };
     let mut turn = 0.0;
-    for deg in RIG_TURNS_DEG {
+    for deg in (1..).map(|k| k as f32 * RIG_TURN_STEP_DEG).take_while(|&d| d < 360.0) {
         if try_rig(turned_rig(&base, deg), &mut best_loss, &mut kept) {
             turn = deg;
         }

@@ -3,17 +3,18 @@
 //! model's two yarn families have one body colour each; a striped photo (a white weft band across
 //! a blue plain weave) then fits neither colour, and the geometry bends to make up for it.
 //!
-//! After the fit, one body-colour multiplier (RGB) per yarn of the fit's tile — `n_e` weft rows
-//! and `n_a` warp columns — is fitted by Adam on the fit loss from one set of recorded paths (the
-//! gradient of the paper's spatially varying colour, §7.2, `texture::texel_gradient`, summed over
-//! each yarn's texels). The multipliers are then folded into the family colours (each family's
-//! colour becomes its brightest yarn's, every multiplier at most 1, so that no `R^B·m` or `S^B·m`
-//! exceeds 1: no energy is created), the rest of the appearance and the radii are polished with
-//! the multipliers held (`refine::polish`: the fit before them had bent both to average the
-//! stripes), and the multipliers fitted once more: a few re-traces in all. A cloth whose first
-//! round gains less than half of [`KEEP_GAIN`] stops after it (one re-trace). It is laid out as a [`BodyTexture`] of one texel per cell whose weft texels are
-//! constant along each row and whose warp texels along each column, so `woven render` draws it
-//! as it draws any body texture.
+//! Before the winner's polish, one body-colour multiplier (RGB) per yarn of the fit's tile —
+//! `n_e` weft rows and `n_a` warp columns — is fitted by Adam on the fit loss from one set of
+//! recorded paths (the gradient of the paper's spatially varying colour, §7.2,
+//! `texture::texel_gradient`, summed over each yarn's texels). The multipliers are then folded
+//! into the family colours (each family's colour becomes its brightest yarn's, every multiplier
+//! at most 1, so that no `R^B·m` or `S^B·m` exceeds 1: no energy is created), the rest of the
+//! appearance and the radii are polished with the multipliers held (`refine::polish`: the fit
+//! before them had bent both to average the stripes), and the multipliers fitted once more: a
+//! few re-traces in all. A cloth whose first round gains less than half of [`KEEP_GAIN`] stops
+//! after it (one re-trace). It is laid out as a [`BodyTexture`] of one texel per cell whose weft
+//! texels are constant along each row and whose warp texels along each column, so `woven render`
+//! draws it as it draws any body texture.
 //!
 //! Skipped where the scene does not need it: the per-yarn colours are kept only when they lower
 //! the loss by [`KEEP_GAIN`] (a cloth of two uniform families gains only the noise's share).
@@ -167,9 +168,9 @@ fn weave_blocks(pattern: &WeavePattern, weave: [usize; 2]) -> Vec<WeavePattern> 
 }
 
 /// Fit one body-colour multiplier per yarn of `cloth`'s tile (see the module doc): per-yarn
-/// multipliers from the recorded paths, folded into the family colours, the family appearance
-/// re-fitted by Levenberg–Marquardt with the multipliers held (`lm_iters`), then the multipliers
-/// again. Returns the cloth with the texture (its family colours those of each family's
+/// multipliers from the recorded paths, folded into the family colours, the radii and the
+/// appearance polished with the multipliers held (`refine::polish`, `lm_iters` per round), then
+/// the multipliers again. Returns the cloth with the texture (its family colours those of each family's
 /// brightest yarn, so every multiplier is at most 1 and no `R^B·m` or `S^B·m` exceeds 1: no
 /// energy is created) and the losses; the caller keeps it when [`YarnColours::pays`].
 pub(crate) fn fit_yarn_colours(
@@ -181,8 +182,9 @@ pub(crate) fn fit_yarn_colours(
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
     let mut plain = cloth.clone();
     plain.body_texture = None;
-    let loss_before = ev.trace_mse(&plain);
+    // One trace serves the loss before and the first round (`trace_mse` is `loss_of` of a record).
     let cache = ev.record(&plain);
+    let loss_before = ev.loss_of(&cache, &plain.appearance);
     // Weft row y at 3y.., warp column x at 3(n_e + x)...
     let mut x = vec![1.0f32; 3 * (n_e + n_a)];
     // First round: free multipliers (up to MAX_MULTIPLIER), so a white stripe can leave a blue

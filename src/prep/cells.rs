@@ -53,7 +53,7 @@ pub struct CellMatrix {
 
 /// The cells lying fully inside `0..extent` for boundaries at `phase + k·pitch`: start of the
 /// first one and count.
-fn cells_along(phase: f64, pitch: f64, extent: usize) -> (f64, usize) {
+pub(super) fn cells_along(phase: f64, pitch: f64, extent: usize) -> (f64, usize) {
     let mut start = phase.rem_euclid(pitch);
     if start < 0.0 {
         start += pitch;

@@ -6,7 +6,7 @@
 //! per family that the photo does not show.
 //!
 //! **Yarn colours.** Each row of cells (one weft) and each column (one warp) gets its mean colour
-//! over the cells' interiors (inset by a fifth of the pitch), divided by the image's mean: a
+//! over its band (inset by a fifth of the pitch from the boundaries), divided by the image's mean: a
 //! sequence `c_j` per axis. Over a row the weft and the warps crossing it mix, but the warps are
 //! the same for every row, so the rows differ by their wefts.
 //!
@@ -32,8 +32,9 @@ pub const MAX_WEAVE_CORR: f64 = 0.6;
 pub const MIN_COLOUR_CORR: f64 = 0.85;
 
 /// Mean colour of each row of cells (`along_y`: one per weft) or column of cells (one per warp)
-/// of the grid `pitch`/`phase` (x, y) over the cells' interiors, relative to the image's mean
-/// colour. Empty where fewer than 2 cells fit.
+/// of the grid `pitch`/`phase` (x, y): over the band of the row (column) inset by a fifth of the
+/// pitch from its boundaries, across the whole image, relative to the image's mean colour. Empty
+/// where fewer than 2 cells fit.
 pub fn yarn_colours(img: &Rgb32FImage, pitch: [f64; 2], phase: [f64; 2], along_y: bool) -> Vec<[f64; 3]> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     if w == 0 || h == 0 || pitch[0] < 2.0 || pitch[1] < 2.0 {
@@ -44,29 +45,29 @@ pub fn yarn_colours(img: &Rgb32FImage, pitch: [f64; 2], phase: [f64; 2], along_y
         (0..3).for_each(|k| mean[k] += p.0[k] as f64);
     }
     let lum = (mean.iter().sum::<f64>() / (3 * w * h) as f64).max(1e-6);
-    let (k, extent, p, ph) = if along_y { (1, h, pitch[1], phase[1]) } else { (0, w, pitch[0], phase[0]) };
-    let start = ph.rem_euclid(p);
-    let n = ((extent as f64 - start) / p).floor().max(0.0) as usize;
+    let k = usize::from(along_y);
+    let extent = if along_y { h } else { w };
+    let (start, n) = super::cells::cells_along(phase[k], pitch[k], extent);
     if n < 2 {
         return Vec::new();
     }
-    let inset = 0.2 * p;
+    let inset = 0.2 * pitch[k];
+    // Pixel `i` of the line `t` across the axis: row `t` (along y) or column `t`.
+    let across = if along_y { w } else { h };
+    let at = |t: usize, i: usize| if along_y { (i, t) } else { (t, i) };
     (0..n)
         .map(|j| {
-            let a = (start + j as f64 * p + inset).ceil() as usize;
-            let b = ((start + (j + 1) as f64 * p - inset).floor() as usize).min(extent - 1).max(a);
-            let (mut sum, mut count) = ([0.0f64; 3], 0usize);
+            let a = (start + j as f64 * pitch[k] + inset).ceil() as usize;
+            let b = ((start + (j + 1) as f64 * pitch[k] - inset).floor() as usize).min(extent - 1).max(a);
+            let mut sum = [0.0f64; 3];
             for t in a..=b {
-                let (lo, hi) = if k == 1 { (0..w, t..t + 1) } else { (t..t + 1, 0..h) };
-                for y in hi.clone() {
-                    for x in lo.clone() {
-                        let v = img.get_pixel(x as u32, y as u32).0;
-                        (0..3).for_each(|c| sum[c] += v[c] as f64);
-                        count += 1;
-                    }
+                for i in 0..across {
+                    let (x, y) = at(t, i);
+                    let v = img.get_pixel(x as u32, y as u32).0;
+                    (0..3).for_each(|c| sum[c] += v[c] as f64);
                 }
             }
-            sum.map(|s| s / (count.max(1) as f64 * lum))
+            sum.map(|s| s / (((b - a + 1) * across) as f64 * lum))
         })
         .collect()
 }
