@@ -43,6 +43,7 @@ pub mod eval;
 mod evaluator;
 mod finish;
 mod hair_extra;
+mod held_out;
 pub mod identify;
 pub mod input;
 mod joint;
@@ -77,6 +78,7 @@ use crate::params::{ClothParams, ParamFile};
 use crate::scene::Scene;
 use anyhow::Result;
 use evaluator::Evaluator;
+use held_out::HeldOut;
 use std::time::Instant;
 
 /// Everything a fit produces.
@@ -293,20 +295,39 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
             cloth = dyed;
             stages.mark("yarn colours", &ev, Some(&cloth));
         }
+        // The polish, the shape and the hair each descend or scan on the fit's own samples; each
+        // is kept only where the held-out samples agree (`held_out`: a sharp specular lobe can
+        // win on the samples it was fitted to and lose everywhere else).
+        let held = HeldOut::new(&ev, r.seed);
+        let before = cloth.clone();
         finish::polish_winner(&st, &opts.finish, &mut cloth);
+        let (kept, mut held_loss, _) = held.keep_if_better(before, None, cloth);
+        cloth = kept;
         stages.mark("polish", &ev, Some(&cloth));
         // Optional yarn shape (crossing depth, flattening), kept only where it pays (shape_extra.rs).
+        let before = cloth.clone();
         shape_extra::fit_shape(&ev, &mut cloth);
+        (cloth, held_loss, _) = held.keep_if_better(before, Some(held_loss), cloth);
         stages.mark("shape", &ev, Some(&cloth));
         // Optional flyaway fibres, their density kept only where it pays (hair_extra.rs).
+        let before = cloth.clone();
         hair_extra::fit_hair(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop);
+        (cloth, _, _) = held.keep_if_better(before, Some(held_loss), cloth);
         stages.mark("hair", &ev, Some(&cloth));
     }
     // A photo's exposure, set once before the fit, traded against body colours left at their
-    // bound (`refine::trade_exposure`); a one-repeat render keeps the model's unit exposure.
-    let traded = (!joint.stopped && photo)
+    // bound (`refine::trade_exposure`); a one-repeat render keeps the model's unit exposure. The
+    // trade too is kept only where the held-out samples of both exposures agree.
+    let before = cloth.clone();
+    let mut traded = (!joint.stopped && photo)
         .then(|| refine::trade_exposure(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
         .flatten();
+    if cloth != before {
+        let after = HeldOut::new(traded.as_ref().unwrap_or(&ev), r.seed).loss(&cloth);
+        if after > HeldOut::new(&ev, r.seed).loss(&before) {
+            (cloth, traded) = (before, None);
+        }
+    }
     let ev = traded.unwrap_or(ev);
     if !joint.stopped {
         stages.mark("exposure", &ev, Some(&cloth));
