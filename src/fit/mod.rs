@@ -18,7 +18,9 @@
 //! 4. `finish`: the annealed best against its rivals (warmed-up candidates, re-ranked candidate,
 //!    n_p/n_f scan, inverted twin), each with an appearance descent; single-cell contests;
 //!    appearance restarts of the winner, polished at the fit's spp and then at `fine_spp`;
-//!    optionally a body-colour texture (`texture`, paper §7.2).
+//!    optionally a body-colour texture (`texture`, paper §7.2). The run-off's winner against the
+//!    runs' own best, the polish, the shape, the hair and the exposure trade are each kept only
+//!    where independent samples agree (`held_out`).
 //! 5. [`output`]: the final state (clamped, rendered, pattern reduced, the input's framing) and
 //!    the files.
 //!
