@@ -41,6 +41,7 @@ pub mod capture;
 pub mod cell_cues;
 mod colours;
 pub mod demo;
+pub(crate) mod display_range;
 pub mod eval;
 mod evaluator;
 mod finish;
@@ -79,6 +80,7 @@ use crate::image_io::Image;
 use crate::params::{ClothParams, ParamFile};
 use crate::scene::Scene;
 use anyhow::Result;
+use display_range::DisplayRange;
 use evaluator::Evaluator;
 use held_out::HeldOut;
 use std::time::Instant;
@@ -333,6 +335,23 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let ev = traded.unwrap_or(ev);
     if !joint.stopped {
         stages.mark("exposure", &ev, Some(&cloth));
+    }
+    // A linear input brighter than the loss's [0, 1] (an EXR): the pattern and the shapes were
+    // read as a display shows it, clamped; the colours are fitted again on the input divided by
+    // one scale, which the result's exposure takes back (`display_range`).
+    let range = DisplayRange::of(ev.target());
+    let range = if photo && !joint.stopped { range } else { DisplayRange::IDENTITY };
+    let ev = if range.is_identity() {
+        ev
+    } else {
+        let (lm, stop) = (opts.finish.lm_iters, &opts.control.stop);
+        let hdr = range.evaluator(&ev);
+        refine::polish(&hdr, &mut cloth, 0, lm, stop);
+        let hdr = refine::trade_exposure(&hdr, &mut cloth, lm, stop).unwrap_or(hdr);
+        stages.mark("display range", &hdr, Some(&cloth));
+        hdr
+    };
+    if !joint.stopped {
         if opts.finish.svcolor > 0 {
             cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
             stages.mark("texture", &ev, Some(&cloth));
@@ -342,7 +361,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
 
     let out = output::final_state(&cloth, &ev, r, (n_e, n_a), (input.width, input.height), target.prep.as_ref())?;
     stages.mark("output", &ev, None);
-    Ok(FitResult {
+    Ok(range.result_to_input(FitResult {
         params: out.params,
         cloth: out.cloth,
         fit_scene: out.fit_scene,
@@ -363,7 +382,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         retraces: ev.traces().count(),
         phase_shift,
         blur_px: view.1,
-    })
+    }))
 }
 
 /// A view of the target: the cyclic shift `(dx, dy)` in fit pixels and the blur σ of the renders.
