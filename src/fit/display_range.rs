@@ -59,7 +59,7 @@ impl DisplayRange {
     }
 
     /// `img` divided by the scale (into the fit's range).
-    pub(crate) fn into_fit(&self, img: &Image) -> Image {
+    pub(crate) fn divided(&self, img: &Image) -> Image {
         scaled(img, 1.0 / self.scale)
     }
 
@@ -67,7 +67,7 @@ impl DisplayRange {
     /// the same renders, compared where the loss's clamp no longer hides the input's bright end.
     pub(crate) fn evaluator(&self, ev: &Evaluator) -> Evaluator {
         let scene = Scene { exposure: ev.scene().exposure / self.scale, ..ev.scene().clone() };
-        ev.sibling(scene, self.into_fit(ev.target()), ev.block())
+        ev.sibling(scene, self.divided(ev.target()), ev.block())
     }
 
     /// The result of a fit finished on [`DisplayRange::evaluator`] in the input's units: the scale
@@ -120,7 +120,7 @@ mod tests {
         }
         let r = DisplayRange::of(&img);
         assert_eq!(r.scale, 1.6, "the 99.5th percentile is a yarn top, not a glint");
-        let fit = r.into_fit(&img);
+        let fit = r.divided(&img);
         assert!((fit.data[0][0] - 1.0).abs() < 1e-6);
         assert!((fit.data[2][0] - 0.5 / 1.6).abs() < 1e-6);
         // Back: the scale multiplies the input's units again.

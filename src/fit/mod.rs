@@ -351,11 +351,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         stages.mark("display range", &hdr, Some(&cloth));
         hdr
     };
-    if !joint.stopped {
-        if opts.finish.svcolor > 0 {
-            cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
-            stages.mark("texture", &ev, Some(&cloth));
-        }
+    if !joint.stopped && opts.finish.svcolor > 0 {
+        cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
+        stages.mark("texture", &ev, Some(&cloth));
     }
     let t_opt = clock.elapsed().as_secs_f64() - t_prep - t_pre;
 
