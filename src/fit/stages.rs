@@ -10,9 +10,11 @@ use std::time::Instant;
 /// One stage of a fit.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct StageTime {
-    /// Stage name (`prep`, `rank`, `warm-up`, `sweeps`, `twin`, `view`, `joint`, `rivals`,
-    /// `toggles`, `polish`, `shape`, `hair`, `exposure` (a photo's exposure traded
-    /// against body colours at their bound), `texture`, `output`).
+    /// Stage name (`prep`, `rank`, `warm-up`, `sweeps`, `twin`, `view`, `twist`, `joint`,
+    /// `rivals`, `toggles`, `cues`, `light`, `yarn colours`, `polish`, `shape`, `hair`,
+    /// `exposure` (a photo's exposure traded against body colours at their bound), `display
+    /// range` (the colours of an input brighter than 1 fitted again, `fit::display_range`),
+    /// `texture`, `output`).
     pub stage: &'static str,
     /// Wall seconds of the stage.
     pub secs: f64,
