@@ -363,14 +363,16 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     }
     // A pitch that spans several yarns (a float's or a repeat's length on twills and satins) is
     // replaced by the one the shifts between the lines of the other family give
-    // (`grid::pitch_from_line_shift`); only the coarser axis is examined, against the finer one.
+    // (`grid::line_shift_yarns`); only the coarser axis is examined, against the finer one. The
+    // shift fits its smallest yarn count and every multiple of it; a multiple is taken where the
+    // cells hold yarns of their own (thin yarns hidden under the floats: `finer_yarns`), also
+    // where the smallest count is the pitch already found (two thin wefts read as one by the
+    // profile, as the line shift reads them).
     let coarse_x = ax0.pitch > ay0.pitch;
     let (coarse, fine) = if coarse_x { (&ax0, &ay0) } else { (&ay0, &ax0) };
     if let Some((period, n, _)) = grid::line_shift_yarns(&gb, coarse_x, fine, min_pitch) {
-        if period / (n as f64) < 0.7 * coarse.pitch as f64 {
-            // The smallest count the shift fits, or a finer one where the cells hold yarns of
-            // their own (thin yarns hidden under the floats: `finer_yarns`).
-            let (p, cell_phase) = finer_count(r, &gb, coarse_x, fine, period, n, min_pitch);
+        let (p, cell_phase) = finer_count(r, &gb, coarse_x, fine, period, n, min_pitch);
+        if p < 0.7 * coarse.pitch as f64 {
             let (ep, ephase, conf) = grid::edge_grid(&gb, coarse_x, p);
             let (pitch, phase) = if conf >= grid::MIN_EDGE_CONFIDENCE {
                 (ep, ephase)
