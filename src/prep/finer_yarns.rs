@@ -15,7 +15,10 @@
 //! phase that puts the pairs on the crossings). If the yarns are `P/2n`, each fine line is a yarn
 //! of its own and neighbouring lines are alike or unlike as the weave makes them, whichever pair
 //! they form. The finer count is taken only where neither the orientation nor the colour pairs
-//! the fine lines at any phase (a pairing by either is the coarse reading), the colours of
+//! the fine lines at any phase (a pairing by either is the coarse reading), fine lines two apart
+//! are not much more alike in colour than neighbours at any phase (a yarn cut into its crown and
+//! the gap beside it alternates every fine cell: that pairs nothing, but repeats every two lines,
+//! as the seed-1616 twill 2/2 over grey read at half its warps does), the colours of
 //! neighbouring fine cells differ by more than the colour noise within a cell (the colour
 //! evidence exists), and the fine cells repeat as a near copy at the repeat `P` (they read one
 //! consistent pattern). It errs towards the coarse count: two families of one colour, a pattern
@@ -38,7 +41,8 @@ pub const MAX_ORIENTATION_SPREAD: f64 = 0.6;
 /// Smallest ratio of the two classes' mean squared colour differences between neighbouring fine
 /// cells (smaller over larger, at every phase) for the fine lines not to be halves of coarser
 /// yarns: the halves of one crossing have one colour, so the coarse reading puts one class near
-/// the noise (ratios 0.00–0.1 where the families differ in colour).
+/// the noise (ratios 0.00–0.1 where the families differ in colour). The same ratio bounds the
+/// colour difference of lines two apart against that of neighbours.
 pub const MIN_COLOUR_RATIO: f64 = 0.5;
 
 /// Smallest ratio of the neighbouring fine cells' colour difference to the colour difference
@@ -152,8 +156,9 @@ fn read_at(img: &Rgb32FImage, g: &Gray, pitch: [f64; 2], phase: [f64; 2], axis_x
 
 /// Whether the lattice `pitch`/`phase` (x, y) — `pitch` along `axis_x` half that of a coarser
 /// reading, `n` of its cells to the repeat — holds yarns of its own rather than the coarser
-/// yarns cut in two (the module docs); the phase along the axis at which its cells repeat best
-/// when it does. `img` is the colour image `g` is the luminance of. The phase is scanned over
+/// yarns cut in two (the module docs); when it does, the phase along the axis at which its cells
+/// are cleanest in colour (neighbours most unlike against the halves of one cell: the cells on
+/// the crossings). `img` is the colour image `g` is the luminance of. The phase is scanned over
 /// one fine pitch in 1-px steps: the pairing must be absent at every phase, since only the phase
 /// that puts the pairs on the crossings shows it.
 pub fn holds_yarns_of_its_own(

@@ -576,8 +576,8 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
 /// The yarn pitch along `axis_x` from the line shift's repeat `period` and its smallest yarn
 /// count `n`: the count is doubled while the lattice twice as fine holds yarns of its own
 /// ([`finer_yarns::holds_yarns_of_its_own`]; at most 8 yarns, at least `min_pitch` and 4 px a
-/// yarn), with the phase at which the finest accepted lattice's cells read best (`None` where the
-/// count stays `n`). `other` is the grid across the lines.
+/// yarn), with the phase that puts the finest accepted lattice's cells on the crossings (`None`
+/// where the count stays `n`). `other` is the grid across the lines.
 fn finer_count(
     img: &Rgb32FImage,
     g: &Gray,
