@@ -454,6 +454,20 @@ fn a_highlight_line_along_each_weft_does_not_split_it_in_two() {
     assert!((p.pitch_y - 21.3).abs() < 0.8, "pitch {}×{} px", p.pitch_x, p.pitch_y);
 }
 
+/// A random 4×6 weave rendered by Mitsuba 3 (rough plastic, the four-light rig over grey;
+/// `datagen/mitsuba/make_set.py --seed 2020`, scene 04, the central 176² of its 256² render, in
+/// colour): thin pink wefts 7.1 px apart, mostly under grey warp floats. Neither the edges (the two
+/// flanks of a thin weft nearly cancel their fundamental) nor the profile show the wefts, and the
+/// line shift fits two wefts of 14.2 px as well as four of 7.1; the smallest count stood (2×6
+/// grid). Read at 7.1 px the cells hold wefts of their own: the fine lines are not pairs of
+/// halves by orientation or colour (`prep::finer_yarns`).
+#[test]
+fn thin_wefts_hidden_under_warp_floats_get_their_own_pitch() {
+    let p = prepared_crop("mitsuba_random4x6_thin_wefts.png");
+    assert_eq!((p.n_e, p.n_a), (4, 6), "pitch {}×{} px", p.pitch_x, p.pitch_y);
+    assert!((p.pitch_y - 7.1).abs() < 0.3, "pitch {}×{} px", p.pitch_x, p.pitch_y);
+}
+
 /// A 2/2 twill rendered by Mitsuba 3 (principled material, a front light over grey; seed 1717,
 /// scene 02, the whole 256² render in grey): 32 px warps, 38.4 px wefts, 1.67 repeats along y.
 /// The 4-cell repeat along x is found; along y the 6.4 wefts in view hold 5 whole rows of cells,

@@ -371,7 +371,7 @@ impl CellMatrix {
 
 /// Pearson correlation of the pairs `(x, y)`; `None` when either side is constant (variance
 /// ≤ 1e-12) or there are no pairs.
-fn pearson(pairs: &[(f64, f64)]) -> Option<f64> {
+pub(super) fn pearson(pairs: &[(f64, f64)]) -> Option<f64> {
     let m = pairs.len() as f64;
     let ma = pairs.iter().map(|p| p.0).sum::<f64>() / m;
     let mb = pairs.iter().map(|p| p.1).sum::<f64>() / m;

@@ -829,6 +829,14 @@ fn axis_grid(
 /// one warp, correlates at 0.24, so the absolute floor alone returned nothing and the float length
 /// (241 px) stood as the warp pitch.
 pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64) -> Option<(f64, f64)> {
+    line_shift_yarns(g, axis_x, other, min_pitch).map(|(period, n, c)| (period / n as f64, c))
+}
+
+/// [`pitch_from_line_shift`] as the bands' repeat `P` (pixels), the yarn count `n` in it (the
+/// pitch is `P / n`) and the shift's correlation. `n` is the smallest count the shift fits; every
+/// multiple of it fits too (a shift of `k` yarns of `P/n` is `2k` yarns of `P/2n`), so a finer
+/// count is for other evidence to decide (`super::finer_yarns`).
+pub fn line_shift_yarns(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64) -> Option<(f64, usize, f64)> {
     let t;
     let lines = if axis_x {
         g
@@ -937,7 +945,7 @@ pub fn pitch_from_line_shift(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch
             let d = (s2 - 2.0 * s_signed as f64).rem_euclid(period);
             d.min(period - d) <= 0.3 * pitch
         });
-        (k >= 1.0 && (s - k * pitch).abs() <= 0.15 * pitch && pitch >= min_pitch && twice).then_some((pitch, c))
+        (k >= 1.0 && (s - k * pitch).abs() <= 0.15 * pitch && pitch >= min_pitch && twice).then_some((period, n, c))
     })
 }
 

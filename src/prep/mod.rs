@@ -21,6 +21,7 @@
 pub mod cells;
 pub mod colour_repeat;
 pub mod drift;
+pub mod finer_yarns;
 pub mod grid;
 pub mod image_ops;
 pub mod period;
@@ -362,14 +363,22 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
     }
     // A pitch that spans several yarns (a float's or a repeat's length on twills and satins) is
     // replaced by the one the shifts between the lines of the other family give
-    // (`grid::pitch_from_line_shift`); only the coarser axis is examined, against the finer one.
+    // (`grid::line_shift_yarns`); only the coarser axis is examined, against the finer one. The
+    // shift fits its smallest yarn count and every multiple of it; a multiple is taken where the
+    // cells hold yarns of their own (thin yarns hidden under the floats: `finer_yarns`), also
+    // where the smallest count is the pitch already found (two thin wefts read as one by the
+    // profile, as the line shift reads them).
     let coarse_x = ax0.pitch > ay0.pitch;
     let (coarse, fine) = if coarse_x { (&ax0, &ay0) } else { (&ay0, &ax0) };
-    if let Some((p, _)) = grid::pitch_from_line_shift(&gb, coarse_x, fine, min_pitch) {
+    if let Some((period, n, _)) = grid::line_shift_yarns(&gb, coarse_x, fine, min_pitch) {
+        let (p, cell_phase) = finer_count(r, &gb, coarse_x, fine, period, n, min_pitch);
         if p < 0.7 * coarse.pitch as f64 {
             let (ep, ephase, conf) = grid::edge_grid(&gb, coarse_x, p);
-            let (pitch, phase) =
-                if conf >= grid::MIN_EDGE_CONFIDENCE { (ep, ephase) } else { (p, coarse.phase as f64) };
+            let (pitch, phase) = if conf >= grid::MIN_EDGE_CONFIDENCE {
+                (ep, ephase)
+            } else {
+                (p, cell_phase.unwrap_or(coarse.phase as f64))
+            };
             let fixed = AxisGrid { pitch: pitch as f32, phase: phase as f32, ..coarse.clone() };
             if coarse_x {
                 ax0 = fixed;
@@ -562,6 +571,34 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         crop: CropRect { x: cx, y: cy, w: cw, h: ch },
         drift,
     })
+}
+
+/// The yarn pitch along `axis_x` from the line shift's repeat `period` and its smallest yarn
+/// count `n`: the count is doubled while the lattice twice as fine holds yarns of its own
+/// ([`finer_yarns::holds_yarns_of_its_own`]; at most 8 yarns, at least `min_pitch` and 4 px a
+/// yarn), with the phase that puts the finest accepted lattice's cells on the crossings (`None`
+/// where the count stays `n`). `other` is the grid across the lines.
+fn finer_count(
+    img: &Rgb32FImage,
+    g: &Gray,
+    axis_x: bool,
+    other: &AxisGrid,
+    period: f64,
+    n: usize,
+    min_pitch: f64,
+) -> (f64, Option<f64>) {
+    let (mut n, mut phase) = (n, None);
+    while 2 * n <= 8 && period / (2 * n) as f64 >= min_pitch.max(4.0) {
+        let q = period / (2 * n) as f64;
+        let (_, edge_phase, _) = grid::edge_grid(g, axis_x, q);
+        let (op, oph) = (other.pitch as f64, other.phase as f64);
+        let (pitch, start) = if axis_x { ([q, op], [edge_phase, oph]) } else { ([op, q], [oph, edge_phase]) };
+        match finer_yarns::holds_yarns_of_its_own(img, g, pitch, start, axis_x, 2 * n) {
+            Some(p) => (n, phase) = (2 * n, Some(p)),
+            None => break,
+        }
+    }
+    (period / n as f64, phase)
 }
 
 /// The grey image the repeat is searched on: fibre texture smoothed out (Gaussian σ = pitch/6)
