@@ -100,13 +100,9 @@ pub struct FitArgs {
     #[arg(long, allow_negative_numbers = true, value_parser = parse_energy_scale)]
     pub energy_scale: Option<f64>,
     /// End each joint run once its best loss has stopped falling for a quarter of its iterations
-    /// also on a one-repeat input (`--no-prep`; faster, sometimes a worse fit there: the
-    /// annealer often finds its better states late). A prepared photo's runs stop so by default.
-    #[arg(long, conflicts_with = "no_plateau_stop")]
-    pub plateau_stop: bool,
-    /// Let each joint run take its whole share of the iterations also on a prepared photo.
+    /// (faster, sometimes a worse fit: the annealer often finds its better states late).
     #[arg(long)]
-    pub no_plateau_stop: bool,
+    pub plateau_stop: bool,
     /// Worker threads.
     #[arg(long, allow_negative_numbers = true, value_parser = super::parse_threads)]
     pub threads: Option<usize>,
@@ -152,11 +148,7 @@ impl FitArgs {
         o.joint.mode = self.mode.into();
         o.joint.iterations = if self.fast { o.joint.iterations.min(self.iterations) } else { self.iterations };
         o.joint.energy_scale = self.energy_scale;
-        o.joint.plateau_stop = match (self.plateau_stop, self.no_plateau_stop) {
-            (true, _) => Some(true),
-            (_, true) => Some(false),
-            _ => None,
-        };
+        o.joint.plateau_stop = self.plateau_stop;
         if !self.fast {
             o.render.px_per_cell = self.px_per_cell;
         }

@@ -31,7 +31,7 @@ const PLATEAU_REL: f32 = 1e-3;
 const PLATEAU_MIN: usize = 8;
 
 /// Iterations without progress (a fall of the run's best loss by [`PLATEAU_REL`]) after which a
-/// run of `n_iter` iterations ends when the plateau stop is on (`JointOptions::stops_on_plateau`): a quarter of its
+/// run of `n_iter` iterations ends when `JointOptions::plateau_stop` is on: a quarter of its
 /// budget, at least [`PLATEAU_MIN`] (12 of a 50-iteration run, while the temperature falls by
 /// `decay^12` ≈ 0.78). The idea: the starts come polished from the pre-estimate, and the finish
 /// re-polishes every run's best with Levenberg–Marquardt, so a run that found nothing better for
@@ -41,12 +41,8 @@ const PLATEAU_MIN: usize = 8;
 /// fits (140 runs of 50 iterations) the rule would have run 32 % of the iterations, yet the best
 /// of 68 runs still fell by > 0.1 % later; on d08 the full run found `n_p` 5 → 3 at iteration
 /// 43 of 50, which the finish's `n_p` scan at a held appearance does not find (0.3 dB lost), and
-/// the one-repeat check's target 0 ends 1.6 dB lower (docs/benchmarks.md, "Session 9: fit
-/// time"). The stop is therefore off for a one-repeat input. On a prepared photo it is on since
-/// session 21: its starts have been through the warm-up's twist scans, the view contest and
-/// the twist stage, and on the whole-path eval the stop changed no pattern and no crop PSNR
-/// while the joint stage's CPU fell by about two thirds (docs/benchmarks.md, "Session 21: fit
-/// time").
+/// the one-repeat check's target 0 ends 1.6 dB lower. The stop is therefore off by default
+/// (docs/benchmarks.md, "Session 9: fit time").
 pub(crate) fn plateau_window(n_iter: usize) -> usize {
     (n_iter / 4).max(PLATEAU_MIN)
 }
@@ -125,14 +121,11 @@ pub(crate) struct JointRuns {
     pub stopped: bool,
 }
 
-/// One joint run from each start, the iterations shared out; `photo`: the input is a prepared
-/// photo, whose runs end on a plateau unless the options say otherwise
-/// ([`JointOptions::stops_on_plateau`]).
-pub(crate) fn run_all(st: &Stage, opts: &JointOptions, starts: &[ClothParams], photo: bool) -> JointRuns {
+/// One joint run from each start, the iterations shared out.
+pub(crate) fn run_all(st: &Stage, opts: &JointOptions, starts: &[ClothParams]) -> JointRuns {
     let stop = &*st.control.stop;
     let n = opts.iterations;
     let per_run = if starts.len() > 1 { n / starts.len() } else { n };
-    let plateau_stop = opts.stops_on_plateau(photo);
     st.control.progress.begin("fit", (per_run * starts.len()) as u64);
     let (mut history, mut checkpoints, mut runs) = (Vec::new(), Vec::new(), Vec::new());
     let mut energy_scale = None;
@@ -142,7 +135,7 @@ pub(crate) fn run_all(st: &Stage, opts: &JointOptions, starts: &[ClothParams], p
             stopped = true;
             break;
         }
-        let run = joint_loop(st, opts, start.clone(), per_run, si * per_run, plateau_stop);
+        let run = joint_loop(st, opts, start.clone(), per_run, si * per_run);
         energy_scale.get_or_insert(run.energy_scale);
         history.extend(run.history);
         checkpoints.extend(run.checkpoints);
@@ -173,16 +166,8 @@ fn grad_from(mode: FitMode, n_iter: usize) -> usize {
     }
 }
 
-/// The joint loop for `n_iter` iterations from `start`; `iter0` numbers the log lines. With
-/// `plateau_stop`, the run ends after [`plateau_window`] iterations without progress.
-fn joint_loop(
-    st: &Stage,
-    opts: &JointOptions,
-    start: ClothParams,
-    n_iter: usize,
-    iter0: usize,
-    plateau_stop: bool,
-) -> JointRun {
+/// The joint loop for `n_iter` iterations from `start`; `iter0` numbers the log lines.
+fn joint_loop(st: &Stage, opts: &JointOptions, start: ClothParams, n_iter: usize, iter0: usize) -> JointRun {
     let stop = &*st.control.stop;
     let mut rng = StdRng::seed_from_u64(st.render.seed ^ 0x05EE_DF17 ^ (iter0 as u64).wrapping_mul(0x9E37_79B9));
     let mut w = Walker::new(st.ev, start);
@@ -235,7 +220,7 @@ fn joint_loop(
         if w.best.0 < progress_loss * (1.0 - PLATEAU_REL) {
             (progress_at, progress_loss) = (k + 1, w.best.0);
         }
-        if plateau_stop && k + 1 < n_iter && k + 1 - progress_at >= window {
+        if opts.plateau_stop && k + 1 < n_iter && k + 1 - progress_at >= window {
             // The best state stands for the iterations not run: the checkpoints still to come
             // hold it, and the progress bar skips them.
             let mut later: Vec<usize> = ck_at.iter().copied().filter(|&c| c > k + 1).collect();
@@ -435,11 +420,11 @@ mod tests {
         let control = Control::default();
         let st = Stage { ev: &ev, render: &render, control: &control, cells: true, clock: Instant::now() };
         let n = 40;
-        let opts = JointOptions { iterations: n, ..JointOptions::default() };
-        let cut = joint_loop(&st, &opts, truth.clone(), n, 0, true);
+        let opts = JointOptions { iterations: n, plateau_stop: true, ..JointOptions::default() };
+        let cut = joint_loop(&st, &opts, truth.clone(), n, 0);
         assert_eq!(cut.best.0, 0.0);
         assert_eq!(cut.history.len(), plateau_window(n));
-        let full = joint_loop(&st, &opts, truth.clone(), n, 0, false);
+        let full = joint_loop(&st, &JointOptions { plateau_stop: false, ..opts }, truth.clone(), n, 0);
         assert_eq!(full.history.len(), n);
         assert_eq!(cut.checkpoints.len(), full.checkpoints.len());
         assert_eq!(cut.checkpoints.last().map(|c| c.iter), full.checkpoints.last().map(|c| c.iter));

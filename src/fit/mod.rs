@@ -251,7 +251,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     }
     let t_pre = clock.elapsed().as_secs_f64() - t_prep;
 
-    let joint = joint::run_all(&st, &opts.joint, &pre.starts, photo);
+    let joint = joint::run_all(&st, &opts.joint, &pre.starts);
     let best = joint.runs.first().cloned().unwrap_or_else(|| (f32::INFINITY, pre.initial.clone()));
     stages.mark("joint", &ev, Some(&best.1));
     let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre, &mut stages);

@@ -176,10 +176,11 @@ pub struct JointOptions {
     /// Energy per unit MSE; calibrated when `None`.
     pub energy_scale: Option<f64>,
     /// End a run once its best loss has stopped falling (`joint::plateau_window` iterations
-    /// without a 0.1 % fall) instead of taking its whole share of `iterations`. `None` (the
-    /// default): on for a prepared photo, off for a one-repeat input
-    /// ([`JointOptions::stops_on_plateau`]).
-    pub plateau_stop: Option<bool>,
+    /// without a 0.1 % fall); off (the default): every run takes its whole share of
+    /// `iterations`. Off because the annealer finds its better discrete states late, while it
+    /// cools: on, the fit is a quarter to a third faster and sometimes worse (docs/benchmarks.md,
+    /// "Session 9: fit time").
+    pub plateau_stop: bool,
 }
 
 impl Default for JointOptions {
@@ -192,25 +193,8 @@ impl Default for JointOptions {
             t0: anneal::T0,
             decay: anneal::DECAY,
             energy_scale: None,
-            plateau_stop: None,
+            plateau_stop: false,
         }
-    }
-}
-
-impl JointOptions {
-    /// Whether the joint runs end on a plateau (`plateau_stop`, or by default whether the input
-    /// is a prepared `photo`).
-    ///
-    /// Why the default differs by path: on a photo the starts come out of the warm-up's shape
-    /// and twist scans, the view contest and the twist stage already polished, and the finish
-    /// re-polishes every run's best against the warmed-up rivals. On the whole-path eval
-    /// (session 21, docs/benchmarks.md) five of eight targets' runs never lowered their start's
-    /// loss by 0.1 %, and stopping after a quarter of a run without progress left every target's
-    /// pattern and crop PSNR as they were while the joint stage's CPU fell by about two thirds.
-    /// On a one-repeat input the annealer finds its better discrete states late, while it cools
-    /// (session 9: the one-repeat check's target 0 lost 1.6 dB with the stop): off there.
-    pub fn stops_on_plateau(&self, photo: bool) -> bool {
-        self.plateau_stop.unwrap_or(photo)
     }
 }
 
@@ -334,10 +318,7 @@ mod tests {
         assert!(d.input.prep && d.pre.enabled && d.finish.enabled && d.cells_free());
         assert_eq!((d.render.px_per_cell, d.render.spp, d.render.loss_block), (16, 4, 2));
         assert_eq!((d.joint.iterations, d.joint.t0, d.joint.decay), (100, anneal::T0, anneal::DECAY));
-        assert_eq!(d.joint.plateau_stop, None, "the plateau stop follows the input by default");
-        assert!(d.joint.stops_on_plateau(true) && !d.joint.stops_on_plateau(false));
-        let forced = |v| JointOptions { plateau_stop: Some(v), ..JointOptions::default() };
-        assert!(forced(true).stops_on_plateau(false) && !forced(false).stops_on_plateau(true));
+        assert!(!d.joint.plateau_stop, "the plateau stop is opt-in");
         let f = FitOptions::fast();
         assert_eq!(f.render.px_per_cell, 10);
         assert_eq!(f.joint.iterations, d.joint.iterations);

@@ -564,14 +564,18 @@ fn scan_plies(
 /// pattern) tries only that answer, against origin 0 with the scan's margin
 /// (`shape_extra::try_ply_origin`).
 ///
-/// Why: where the plies' stripes stand is a property of the photo's crop, not of the colour
-/// estimate nor, at the same ply count and radii, of the pattern tried; yet the states differ in
-/// their colours and cells, so the record memo does not share them, and each scan cost as many
-/// re-traces as the first (2·(steps − 1) per ply count; session 20: over half the warm-up's
-/// re-traces on a 3×3 with three candidates). Sharing the answers across the candidates left the
-/// whole-path eval's fits as they were (docs/benchmarks.md, session 21). Carrying an origin to
-/// another radius instead (the same phase of the twist) lost a 2-ply reading on whole-path
-/// target 1 (session 20): another radius is scanned anew.
+/// Why: where the plies' stripes stand is mostly a property of the photo's crop: the readings
+/// differ in the colour estimate only, and at the same ply count and radii the candidates'
+/// patterns change the ply period only through the yarns' crimp. Yet the states differ in their
+/// colours and cells, so the record memo does not share them, and each scan cost as many
+/// re-traces as the first (2·(steps − 1) per ply count: 216 of the warm-up's 397 re-traces on
+/// whole-path eval target 7, a 3×3 with three candidates whose readings settle on two common
+/// radii). The candidates' own scans did not always land on the same origin (target 7, 3 plies
+/// at radius 3: three candidates, three weft origins), so a later candidate keeps origin 0 where
+/// the one tried does not pay; sharing left the whole-path eval's patterns and crop PSNRs as
+/// they were (docs/benchmarks.md, session 21). Carrying an origin to another radius instead (the
+/// same phase of the twist) lost a 2-ply reading on whole-path target 1 (session 20): another
+/// radius is scanned anew.
 fn twist_origin(origins: &TwistMemo, c: &mut ClothParams, l: f32, loss: impl FnMut(&mut ClothParams) -> f32) -> f32 {
     use super::shape_extra::{scan_ply_origin, try_ply_origin};
     let shape = (c.n_p, c.r_e, c.r_a);
