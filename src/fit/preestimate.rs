@@ -140,8 +140,11 @@ pub(crate) fn pre_estimate(
     // fits: with the grey default, the loss is too flat in the pattern to rank them.
     st.control.progress.begin("pre-estimate", shortlist.len() as u64);
     let mut warm: Vec<(f32, ClothParams)> = Vec::new();
+    // The twist origins the ply scans find, shared by every candidate's scans (`twist_origin`).
+    let origins = TwistMemo::default();
+    let twist = opts.twist_origin.then_some(&origins);
     for p in shortlist {
-        warm.push(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, p, opts.warmup, opts.twist_origin));
+        warm.push(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, p, opts.warmup, twist));
         st.control.progress.advance(1);
     }
     st.control.progress.finish();
@@ -338,8 +341,9 @@ pub(crate) fn network_reading(
 /// (default appearance but the colours; the ply counts on the view `plies`, the radius grids on
 /// the view `radii`, see [`scan_shape`]) does not rank the shape
 /// variants reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations)
-/// of the appearance on the fit's evaluator, and the best one is polished. Returns the polished
-/// loss and cloth.
+/// of the appearance on the fit's evaluator, and the best one is polished. With `twist` (the
+/// origins found so far), the ply scans try where the twist starts ([`scan_plies`]). Returns the
+/// polished loss and cloth.
 fn warm_up(
     st: &Stage,
     plies: Scan,
@@ -347,7 +351,7 @@ fn warm_up(
     cloth: &ClothParams,
     p: WeavePattern,
     iters: usize,
-    twist: bool,
+    twist: Option<&TwistMemo>,
 ) -> (f32, ClothParams) {
     let (ev, c, stop) = (st.ev, st.render.px_per_cell, &*st.control.stop);
     let mut cand = cloth.clone();
@@ -389,23 +393,21 @@ struct Scan<'a> {
     c: u32,
 }
 
-/// The records of one scan view ([`RecordMemo`]) and its pixels per cell, with the twist
-/// origins its ply scans found ([`TwistMemo`]).
+/// The records of one scan view ([`RecordMemo`]) and its pixels per cell.
 struct ScanMemo<'a> {
     memo: RecordMemo<'a>,
     c: u32,
-    origins: TwistMemo,
 }
 
 impl<'a> ScanMemo<'a> {
     /// An empty memo of the view `ev` at `c` pixels per cell.
     fn new(ev: &'a Evaluator, c: u32) -> Self {
-        ScanMemo { memo: RecordMemo::new(ev), c, origins: TwistMemo::default() }
+        ScanMemo { memo: RecordMemo::new(ev), c }
     }
 }
 
-/// The twist origins one candidate's ply scans found: per ply count and radii of the state
-/// scanned, the origins kept, for [`twist_origin`].
+/// The twist origins the warm-up's ply scans found, over all its candidates: per ply count and
+/// radii of the state scanned, the origins kept, for [`twist_origin`].
 type TwistMemo = std::sync::Mutex<Vec<((u32, f32, f32), [f32; 2])>>;
 
 /// The shape variants of [`scan_shape`] with the family colours read over the yarn pixels, then
@@ -427,7 +429,7 @@ fn shape_variants(
     plies: Scan,
     radii: Scan,
     cloth: &ClothParams,
-    twist: bool,
+    twist: Option<&TwistMemo>,
     stop: &AtomicBool,
 ) -> Vec<(ClothParams, Reading)> {
     // Both scans start from the same cloth and walk the same grids: the states they share are
@@ -473,7 +475,7 @@ fn scan_shape(
     radii: &ScanMemo,
     cloth: &ClothParams,
     reading: Reading,
-    twist: bool,
+    twist: Option<&TwistMemo>,
     stop: &AtomicBool,
 ) -> Vec<ClothParams> {
     let ev = radii.memo.ev();
@@ -485,7 +487,7 @@ fn scan_shape(
     if let Some((_, r)) = best_variant(ev, &cl, grid, |cl, r| (cl.r_e, cl.r_a) = (r, r), loss, stop) {
         (cl.r_e, cl.r_a) = (r, r);
     }
-    let (at_common, joint) = scan_plies(plies.memo.ev(), &cl, &ply_loss, twist.then_some(&plies.origins), stop);
+    let (at_common, joint) = scan_plies(plies.memo.ev(), &cl, &ply_loss, twist, stop);
     let near = |r: f32| [-1.0, -0.5, 0.0, 0.5, 1.0].map(|d| r + d).into_iter().filter(|r| (lo..=hi).contains(r));
     let per_family = |base: &ClothParams| {
         let mut cl = base.clone();
@@ -513,7 +515,7 @@ fn scan_shape(
 const TWIST_SCAN_STEPS: usize = 4;
 
 /// One pass over `(n_p, radius)`, the common radius of `cl` and ±0.5, serves both the best `n_p`
-/// at that radius and the best pair. With `twist` (the candidate's origins so far), each ply
+/// at that radius and the best pair. With `twist` (the warm-up's origins so far), each ply
 /// count of at least two is scored at the common radius with its best twist origin
 /// ([`twist_origin`]): a photo's crop shows its plies' stripes at a phase the model's origin
 /// does not give them, and at that origin the true few plies lose to many fine ones the blur
@@ -555,18 +557,25 @@ fn scan_plies(
 }
 
 /// The twist origin of the ply scan's state `c` (loss `l`), written into `c`; returns its loss.
-/// The first scan of `c`'s ply count and common radius for the candidate tries
-/// [`TWIST_SCAN_STEPS`] origins per family (`shape_extra::scan_ply_origin`) and keeps its answer
-/// in `origins`; a later one at the same ply count and radius (the other reading of the family
-/// colours, [`shape_variants`], where it settled on the same common radius) tries only that
-/// answer, against origin 0 with the scan's margin (`shape_extra::try_ply_origin`).
+/// The warm-up's first scan of `c`'s ply count and common radius tries [`TWIST_SCAN_STEPS`]
+/// origins per family (`shape_extra::scan_ply_origin`) and keeps its answer in `origins`; a
+/// later one at the same ply count and radius (the other reading of the family colours,
+/// [`shape_variants`], where it settled on the same common radius, or another candidate's
+/// pattern) tries only that answer, against origin 0 with the scan's margin
+/// (`shape_extra::try_ply_origin`).
 ///
-/// Why: the two readings differ in the colour estimate only, so at the same shape the plies'
-/// stripes stand where they do for both; yet the states differ in their colours, so the record
-/// memo does not share them, and the second scan cost as many re-traces as the first
-/// (2·(steps − 1) per ply count). Carrying an origin to the other reading's radius instead (the
-/// same phase of the twist) lost a 2-ply reading on whole-path target 1 (docs/benchmarks.md,
-/// session 20): another radius is scanned anew.
+/// Why: where the plies' stripes stand is mostly a property of the photo's crop: the readings
+/// differ in the colour estimate only, and at the same ply count and radii the candidates'
+/// patterns change the ply period only through the yarns' crimp. Yet the states differ in their
+/// colours and cells, so the record memo does not share them, and each scan cost as many
+/// re-traces as the first (2·(steps − 1) per ply count: 216 of the warm-up's 397 re-traces on
+/// whole-path eval target 7, a 3×3 with three candidates whose readings settle on two common
+/// radii). The candidates' own scans did not always land on the same origin (target 7, 3 plies
+/// at radius 3: three candidates, three weft origins), so a later candidate keeps origin 0 where
+/// the one tried does not pay; sharing left the whole-path eval's patterns and crop PSNRs as
+/// they were (docs/benchmarks.md, session 21). Carrying an origin to another radius instead (the
+/// same phase of the twist) lost a 2-ply reading on whole-path target 1 (session 20): another
+/// radius is scanned anew.
 fn twist_origin(origins: &TwistMemo, c: &mut ClothParams, l: f32, loss: impl FnMut(&mut ClothParams) -> f32) -> f32 {
     use super::shape_extra::{scan_ply_origin, try_ply_origin};
     let shape = (c.n_p, c.r_e, c.r_a);
@@ -680,6 +689,46 @@ mod tests {
         // A reading that is no weave at all is an error.
         view.cell_logits = vec![vec![1.0; n]; n];
         assert!(network_reading(&view, &target([0.3; 3], [0.3; 3]), n, n).is_err());
+    }
+
+    /// The warm-up's candidates share one memo of twist origins: the second pattern's ply pass
+    /// tries each ply count's known origin once instead of scanning it, and ends at the same
+    /// shape where the origin pays for it too.
+    #[test]
+    fn the_ply_scans_of_later_candidates_reuse_the_twist_origins_found() {
+        use crate::scene::LightRig;
+        let calls = std::cell::Cell::new(0);
+        // Any weft origin past the repeat's edge pays, the more so the more plies: the scans keep
+        // their first step, and 7 plies at the common radius win.
+        let loss = |_: &Evaluator, v: &mut ClothParams| {
+            calls.set(calls.get() + 1);
+            let twisted = if v.shape.ply_origin[0] > 0.0 { 0.5 } else { 1.0 };
+            twisted * (1.0 + 0.01 * (8 - v.n_p) as f32 + (v.r_e - 3.0).abs())
+        };
+        let first = default_cloth(WeavePattern::preset("twill22").unwrap());
+        let ev = Evaluator::of_own_render(&first, fit_scene(4, 4, 2, 1, 1, &LightRig::default_rig()));
+        let stop = AtomicBool::new(false);
+        let start = |p: &str| {
+            let mut c = default_cloth(WeavePattern::preset(p).unwrap());
+            (c.r_e, c.r_a) = (3.0, 3.0);
+            c
+        };
+        let memo = TwistMemo::default();
+        let plies = (NP_RANGE.0..=NP_RANGE.1).count();
+        let twisted = (2..=NP_RANGE.1).count();
+        // 3 radii per ply count at origin 0, then each ply count ≥ 2 at the common radius scanned.
+        let (common, _) = scan_plies(&ev, &start("twill22"), &loss, Some(&memo), &stop);
+        assert_eq!(calls.get(), 3 * plies + twisted * 2 * (TWIST_SCAN_STEPS - 1));
+        assert!(common.n_p == NP_RANGE.1 && common.shape.ply_origin[0] > 0.0);
+        // Another pattern at the same radius: one try of the known origin per ply count.
+        calls.set(0);
+        let (other, _) = scan_plies(&ev, &start("twill31"), &loss, Some(&memo), &stop);
+        assert_eq!(calls.get(), 3 * plies + twisted);
+        assert_eq!((other.n_p, other.shape), (common.n_p, common.shape));
+        // Without the memo (a one-repeat input), no origin is tried.
+        calls.set(0);
+        let (plain, _) = scan_plies(&ev, &start("twill31"), &loss, None, &stop);
+        assert_eq!((calls.get(), plain.shape.ply_origin), (3 * plies, [0.0; 2]));
     }
 
     #[test]
@@ -816,9 +865,9 @@ mod tests {
         // offers one shape, 7 plies at 4.5/4.5; the descent never sees the truth's.
         let fine = Scan { ev: &ev, c };
         let memo = || ScanMemo::new(&ev, c);
-        let yarn = scan_shape(&memo(), &memo(), &start, Reading::YarnPixels, false, &stop);
+        let yarn = scan_shape(&memo(), &memo(), &start, Reading::YarnPixels, None, &stop);
         assert!(!yarn.iter().any(near_truth), "yarn pixels alone: {:?}", shapes(&yarn));
-        let all: Vec<ClothParams> = shape_variants(fine, fine, &start, false, &stop).into_iter().map(|v| v.0).collect();
+        let all: Vec<ClothParams> = shape_variants(fine, fine, &start, None, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings: {:?}", shapes(&all));
         // Every variant of the yarn-pixel scan stays on offer.
         assert!(yarn.iter().all(|y| all.iter().any(|v| (v.n_p, v.r_e, v.r_a) == (y.n_p, y.r_e, y.r_a))));
@@ -832,12 +881,12 @@ mod tests {
         );
         let coarse = Scan { ev: &coarse, c: sp };
         let all: Vec<ClothParams> =
-            shape_variants(coarse, coarse, &start, false, &stop).into_iter().map(|v| v.0).collect();
+            shape_variants(coarse, coarse, &start, None, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "both readings at {sp} px per cell: {:?}", shapes(&all));
         // The split of `PreOptions::radius_scan_px_per_cell` = 8: radius grids at 8 px per cell,
         // the ply pass at the fit's 16.
         let all: Vec<ClothParams> =
-            shape_variants(fine, coarse, &start, false, &stop).into_iter().map(|v| v.0).collect();
+            shape_variants(fine, coarse, &start, None, &stop).into_iter().map(|v| v.0).collect();
         assert!(all.iter().any(near_truth), "radii at {sp}, plies at {c} px per cell: {:?}", shapes(&all));
     }
 }
