@@ -46,7 +46,7 @@ impl DisplayRange {
         let mut brightest: Vec<f32> =
             input.data.iter().map(|p| p[0].max(p[1]).max(p[2])).filter(|v| v.is_finite()).collect();
         if brightest.is_empty() {
-            return Self { scale: 1.0 };
+            return Self::IDENTITY;
         }
         let k = ((brightest.len() - 1) as f64 * SCALE_PERCENTILE).round() as usize;
         let (_, v, _) = brightest.select_nth_unstable_by(k, f32::total_cmp);

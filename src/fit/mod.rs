@@ -288,6 +288,12 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     }
     let ev = lit.unwrap_or(ev);
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
+    // The polish, the shape, the hair and the exposure trade each descend or scan on the fit's own
+    // samples; each is kept only where the held-out samples agree (`held_out`: a sharp specular
+    // lobe can win on the samples it was fitted to and lose everywhere else). `held_loss`: the
+    // held-out loss of `cloth` as it stands, once known.
+    let held = HeldOut::new(&ev, r.seed);
+    let mut held_loss = None;
     if !joint.stopped {
         if photo && opts.finish.yarn_colours && opts.finish.svcolor == 0 {
             // Stripes and checks: each yarn of the repeat its own colour, where that pays, before
@@ -299,24 +305,22 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
             cloth = dyed;
             stages.mark("yarn colours", &ev, Some(&cloth));
         }
-        // The polish, the shape and the hair each descend or scan on the fit's own samples; each
-        // is kept only where the held-out samples agree (`held_out`: a sharp specular lobe can
-        // win on the samples it was fitted to and lose everywhere else).
-        let held = HeldOut::new(&ev, r.seed);
         let before = cloth.clone();
         finish::polish_winner(&st, &opts.finish, &mut cloth);
-        let (kept, mut held_loss, _) = held.keep_if_better(before, None, cloth);
-        cloth = kept;
+        let (kept, l, _) = held.keep_if_better(before, None, cloth);
+        (cloth, held_loss) = (kept, Some(l));
         stages.mark("polish", &ev, Some(&cloth));
         // Optional yarn shape (crossing depth, flattening), kept only where it pays (shape_extra.rs).
         let before = cloth.clone();
         shape_extra::fit_shape(&ev, &mut cloth);
-        (cloth, held_loss, _) = held.keep_if_better(before, Some(held_loss), cloth);
+        let (kept, l, _) = held.keep_if_better(before, held_loss, cloth);
+        (cloth, held_loss) = (kept, Some(l));
         stages.mark("shape", &ev, Some(&cloth));
         // Optional flyaway fibres, their density kept only where it pays (hair_extra.rs).
         let before = cloth.clone();
         hair_extra::fit_hair(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop);
-        (cloth, _, _) = held.keep_if_better(before, Some(held_loss), cloth);
+        let (kept, l, _) = held.keep_if_better(before, held_loss, cloth);
+        (cloth, held_loss) = (kept, Some(l));
         stages.mark("hair", &ev, Some(&cloth));
     }
     // A photo's exposure, set once before the fit, traded against body colours left at their
@@ -328,7 +332,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         .flatten();
     if cloth != before {
         let after = HeldOut::new(traded.as_ref().unwrap_or(&ev), r.seed).loss(&cloth);
-        if after > HeldOut::new(&ev, r.seed).loss(&before) {
+        if after > held_loss.unwrap_or_else(|| held.loss(&before)) {
             (cloth, traded) = (before, None);
         }
     }
@@ -339,8 +343,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // A linear input brighter than the loss's [0, 1] (an EXR): the pattern and the shapes were
     // read as a display shows it, clamped; the colours are fitted again on the input divided by
     // one scale, which the result's exposure takes back (`display_range`).
-    let range = DisplayRange::of(ev.target());
-    let range = if photo && !joint.stopped { range } else { DisplayRange::IDENTITY };
+    let range = if photo && !joint.stopped { DisplayRange::of(ev.target()) } else { DisplayRange::IDENTITY };
     let ev = if range.is_identity() {
         ev
     } else {
