@@ -296,7 +296,14 @@ impl Image {
                 let bytes = std::fs::read(path).map_err(|e| read_err(e.to_string()))?;
                 check_jpeg_complete(&bytes).map_err(read_err)?;
             }
-            let dynimg = r.decode().map_err(|e| read_err(e.to_string()))?;
+            // A phone stores a portrait photo as landscape pixels plus an EXIF orientation that
+            // every viewer applies; applied here too, so that preparation, the weave's warp and
+            // weft and the registered fit.png follow the photo as the user sees it.
+            use image::ImageDecoder;
+            let mut decoder = r.into_decoder().map_err(|e| read_err(e.to_string()))?;
+            let orientation = decoder.orientation().unwrap_or(image::metadata::Orientation::NoTransforms);
+            let mut dynimg = image::DynamicImage::from_decoder(decoder).map_err(|e| read_err(e.to_string()))?;
+            dynimg.apply_orientation(orientation);
             use image::DynamicImage as D;
             match &dynimg {
                 D::ImageRgb32F(_) | D::ImageRgba32F(_) => Image::from_rgb32f(&dynimg.to_rgb32f()),
@@ -420,6 +427,35 @@ mod tests {
         let mut bytes = Vec::new();
         img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Jpeg).unwrap();
         bytes
+    }
+
+    /// A JPEG of a 64 × 48 picture stored with EXIF orientation 6 ("rotate 90° clockwise to
+    /// view", what a phone writes for a portrait photo) loads as the 48 × 64 picture a viewer shows.
+    #[test]
+    fn the_exif_orientation_of_a_jpeg_is_applied() {
+        use image::ImageEncoder;
+        // Left half black, right half white: after the turn, top half black, bottom half white.
+        let img =
+            image::RgbImage::from_fn(64, 48, |x, _| if x < 32 { image::Rgb([0; 3]) } else { image::Rgb([255; 3]) });
+        // A TIFF-structured EXIF block: little-endian header, one IFD of one entry,
+        // tag 0x0112 (orientation), type SHORT, count 1, value 6.
+        let mut exif = b"II*\0\x08\0\0\0\x01\0".to_vec();
+        exif.extend_from_slice(&[0x12, 0x01, 3, 0, 1, 0, 0, 0, 6, 0, 0, 0, 0, 0, 0, 0]);
+        let mut bytes = Vec::new();
+        let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 95);
+        enc.set_exif_metadata(exif).unwrap();
+        enc.write_image(img.as_raw(), 64, 48, image::ExtendedColorType::Rgb8).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("portrait.jpg");
+        std::fs::write(&path, &bytes).unwrap();
+        let loaded = Image::load(&path, 8).unwrap();
+        assert_eq!((loaded.width, loaded.height), (48, 64));
+        assert!(
+            loaded.get(24, 8)[0] < 0.05 && loaded.get(24, 56)[0] > 0.9,
+            "{:?} {:?}",
+            loaded.get(24, 8),
+            loaded.get(24, 56)
+        );
     }
 
     #[test]

@@ -696,6 +696,34 @@ impl NoiseModel {
         }
     }
 
+    /// [`Self::add_to`] for a model fitted on a view of `scale` photo pixels per pixel (a large
+    /// photo prepared on its box-averaged working view, `prep::working_scale`): the noise is
+    /// synthesized at the view's resolution and added bilinearly upsampled, so its grain has the
+    /// size it had in the view (the model's frequencies are in the view's cycles per pixel), not a
+    /// `scale` times finer one; the synthesis also costs the view's pixels, not the photo's.
+    pub fn add_to_scaled(&self, img: &mut Image, seed: u64, scale: u32) {
+        if scale <= 1 {
+            return self.add_to(img, seed);
+        }
+        let n = self.synthesize(img.width.div_ceil(scale), img.height.div_ceil(scale), seed);
+        let (nw, nh) = (n.width as i64, n.height as i64);
+        let k = scale as f64;
+        // Photo pixel x is view coordinate (x − (k − 1)/2)/k (pixel centres at integers); the
+        // synthesized field is periodic (an inverse FFT), so it is sampled with wrap-around.
+        let at = |i: i64, j: i64| n.data[(j.rem_euclid(nh) * nw + i.rem_euclid(nw)) as usize];
+        let off = (k - 1.0) / 2.0;
+        let w = img.width as usize;
+        for (idx, p) in img.data.iter_mut().enumerate() {
+            let (u, v) = (((idx % w) as f64 - off) / k, ((idx / w) as f64 - off) / k);
+            let (i, j) = (u.floor() as i64, v.floor() as i64);
+            let (fx, fy) = ((u - u.floor()) as f32, (v - v.floor()) as f32);
+            let (a, b, c, d) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
+            for ch in 0..3 {
+                p[ch] += (1.0 - fy) * ((1.0 - fx) * a[ch] + fx * b[ch]) + fy * ((1.0 - fx) * c[ch] + fx * d[ch]);
+            }
+        }
+    }
+
     /// Pretty JSON.
     pub fn to_json(&self) -> String {
         serde_json::to_string_pretty(self).expect("noise model serialises")
@@ -746,5 +774,46 @@ mod tests {
         }
         let s = window_spread(64).sqrt() * 64.0;
         assert!(s > 0.3 && s < 1.5, "Hann spread {s} bins");
+    }
+
+    /// Noise of a model fitted on a view of 3 photo pixels per pixel, added to a photo-sized image,
+    /// keeps the view's grain: a model of stripes 10 view pixels apart gives stripes 30 photo pixels
+    /// apart (the autocorrelation along x peaks again at a lag of 30, not 10), at the same variance.
+    #[test]
+    fn noise_of_a_working_view_keeps_its_grain_at_the_photo_size() {
+        let g = SpectralGaussian { weight: 1.0, fx: 0.1, fy: 0.0, sx: 0.004, sy: 0.004 };
+        let model = NoiseModel {
+            version: NOISE_MODEL_VERSION,
+            gaussians: vec![g],
+            floor: 0.0,
+            variance: [0.01; 3],
+            correlation: [1.0; 3],
+            source_size: [120, 120],
+            log_rms: 0.0,
+        };
+        // The lag of the autocorrelation's first peak along x (red channel): its largest value
+        // between its first negative lag and 60 px.
+        let period = |img: &Image| -> usize {
+            let (w, h) = (img.width as usize, img.height as usize);
+            let ac = |d: usize| -> f64 {
+                (0..h)
+                    .flat_map(|y| (0..w - d).map(move |x| (x, y)))
+                    .map(|(x, y)| img.data[y * w + x][0] as f64 * img.data[y * w + x + d][0] as f64)
+                    .sum()
+            };
+            let trough = (1..60).find(|&d| ac(d) < 0.0).unwrap_or(1);
+            (trough..60).max_by(|&a, &b| ac(a).total_cmp(&ac(b))).unwrap()
+        };
+        let mut img = Image::new(360, 360, vec![[0.0; 3]; 360 * 360]);
+        model.add_to_scaled(&mut img, 7, 3);
+        let p3 = period(&img);
+        assert!((29..=31).contains(&p3), "stripes {p3} px apart");
+        let var = img.data.iter().map(|p| (p[0] as f64).powi(2)).sum::<f64>() / img.data.len() as f64;
+        assert!((var / 0.01 - 1.0).abs() < 0.2, "variance {var}");
+        // Unscaled, the same model gives the view's own stripes.
+        let mut same = Image::new(360, 360, vec![[0.0; 3]; 360 * 360]);
+        model.add_to_scaled(&mut same, 7, 1);
+        let p1 = period(&same);
+        assert!((9..=11).contains(&p1), "stripes {p1} px apart");
     }
 }

@@ -209,6 +209,7 @@ fn warn_all(warnings: &[String]) {
 /// whole; a fit stopped early goes to `OUT.partial` and leaves an earlier complete fit in `--out`
 /// as it was.
 pub fn run_fit(args: &FitArgs) -> Result<()> {
+    let started = (Instant::now(), woven::bench::cpu_seconds().map(|c| c.0));
     let mut opts = args.to_options()?;
     if let Some(m) = &args.model {
         // Refused here (a FIFO, a folder, a bad file) rather than after preparation; the fit
@@ -227,6 +228,7 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
             (Some(p), c)
         }
     };
+    let t_prepared = started.0.elapsed().as_secs_f64();
     if let Some(c) = &capture {
         if args.lights.is_none() {
             opts.render.lights = c.capture.rig();
@@ -257,12 +259,14 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
         input.width,
         input.height
     );
+    let mut t_fitted = 0.0;
     let (res, stopped, scores) = beat.run(|| {
         let res = fit_prepared(&input, prepared, &opts).with_context(|| format!("fitting {}", args.image.display()))?;
         // The flag also counts when it was set during the finish, which cuts the polish short
         // without marking the result as stopped.
         let stopped = res.stopped || stop.load(Ordering::SeqCst);
         warn_all(&res.warnings);
+        t_fitted = started.0.elapsed().as_secs_f64();
         beat.phase("writing the outputs (full-size render, comparisons, geometry export)");
         let written = write_fit_outputs(&res, staging.dir(), !args.no_noise, args.threads)?;
         warn_all(&written.warnings);
@@ -301,6 +305,18 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
             );
         }
     }
+    // The whole command, not only the fit's stages: on a large photo, reading it, preparing it and
+    // writing the photo-sized outputs are a real share of the time a user waits.
+    let wall = started.0.elapsed().as_secs_f64();
+    let cpu = match (started.1, woven::bench::cpu_seconds()) {
+        (Some(a), Some((b, _))) => format!(", {:.1} CPU s", b - a),
+        _ => String::new(),
+    };
+    outln!(
+        "in all {wall:.1} s{cpu}: reading and preparing the photo {t_prepared:.1} s, the fit {:.1} s, writing the outputs {:.1} s",
+        t_fitted - t_prepared,
+        wall - t_fitted
+    );
     if stopped {
         let kept = if args.out.join("fit.json").is_file() {
             "keeps the earlier complete fit"

@@ -111,6 +111,18 @@ pub fn run(a: &PrepArgs) -> Result<()> {
         secs,
         out.display()
     );
+    if let Some(v) = p.working {
+        outln!(
+            "  prepared on a working view of the {}×{} px photo: {}×{} px, each the mean of {k}×{k} photo pixels from ({}, {}) (the pixels above are the view's)",
+            img.width,
+            img.height,
+            v.width,
+            v.height,
+            v.x0,
+            v.y0,
+            k = v.scale
+        );
+    }
     // How periodic the photo is: the prepared picture (each repeat at its drift) against the photo.
     outln!(
         "  repeats drift up to {:.1} px; the prepared periodic picture against the photo: {:.1} dB",

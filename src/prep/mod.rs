@@ -2,7 +2,9 @@
 //! fabric into an axis-aligned, regularized image plus the yarn grid and the minimum repeating
 //! pattern size.
 //!
-//! Steps, in the order [`prepare`] runs them:
+//! A photo larger than [`working_scale::WORK_SIDE`] is prepared on a box-averaged working view
+//! ([`working_scale`]), the homography composed back to the photo's pixels. Steps, in the order
+//! [`prepare`] runs them:
 //! 1. [`rectify`] — Laplacian + Radon transform → dominant yarn angle, rotation, crop; then a
 //!    RANSAC vanishing-point fit removes slight perspective (§4.1, \[Chaudhury14\]).
 //! 2. A first pitch estimate from the integral projections of the rectified image ([`grid`]); its
@@ -30,6 +32,7 @@ pub mod regularize;
 pub mod survey;
 #[cfg(test)]
 pub(crate) mod testutil;
+pub mod working_scale;
 
 use image::Rgb32FImage;
 use serde::Serialize;
@@ -37,6 +40,7 @@ use serde::Serialize;
 pub use crate::math::linalg::Homography;
 pub use drift::RepeatDrift;
 pub use regularize::RepeatParams;
+pub use working_scale::WorkingView;
 
 use grid::{analyze_axis, AxisGrid};
 use image_ops::{blur_gray, blur_rgb, median, Gray};
@@ -247,6 +251,11 @@ pub struct Prepared {
     /// Where each repeat of the rectified photo sits against the mean repeat ([`RepeatDrift`]):
     /// what `regularized` leaves out and the registered fit puts back.
     pub drift: RepeatDrift,
+    /// The working view of a large photo that was prepared instead of the photo itself
+    /// ([`working_scale`]: the photo box-averaged, perhaps a window of it); all the geometry above
+    /// is in its pixels except `homography`, which maps to the photo's. `None`: the photo itself.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub working: Option<WorkingView>,
 }
 
 fn check_input(img: &Rgb32FImage) -> Result<(), PrepError> {
@@ -290,8 +299,16 @@ fn crop_axis(phase: f32, pitch: f32, n: usize, extent: u32) -> (u32, u32) {
 /// [`PrepError::NonFinite`], and — both starting with "no periodic yarn structure found" —
 /// [`PrepError::NoStructure`] for uniform images or anything whose integral projections are not
 /// periodic, [`PrepError::NoRepeat`] for images (noise) with neither a repeat nor a strong grid.
+///
+/// A photo larger than [`working_scale::WORK_SIDE`] is prepared on a box-averaged working view of
+/// it ([`working_scale`]), in seconds instead of minutes; the homography still maps to the photo.
 pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepError> {
     check_input(img)?;
+    working_scale::prepare_scaled(img, |view| prepare_view(view, opts))
+}
+
+/// [`prepare`] on the pixels given (the photo, or a working view of it).
+fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepError> {
     // 1. Rectification.
     let rect = if opts.rectify {
         rectify::rectify(img, opts.perspective)
@@ -570,6 +587,7 @@ pub fn prepare(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepEr
         weave_repeat: coloured.then_some([weave_n[1], weave_n[0]]),
         crop: CropRect { x: cx, y: cy, w: cw, h: ch },
         drift,
+        working: None,
     })
 }
 
@@ -625,8 +643,18 @@ fn flatten_for_period(g: &Gray, max_pitch: f64, pitch: f64) -> Gray {
 /// limit, else the rectified image with the yarn boundaries of the first pitch estimate drawn in
 /// red along the axes where one was found, else the rectified image alone. `None` only for an
 /// image too small or non-finite to rectify.
+/// A photo larger than [`working_scale::WORK_SIDE`] is drawn at its overview scale
+/// ([`working_scale::overview`]).
 pub fn diagnostic_overlay(img: &Rgb32FImage, opts: &PrepOptions) -> Option<Rgb32FImage> {
     check_input(img).ok()?;
+    let view = working_scale::overview(img.width(), img.height());
+    let small;
+    let img = if view.is_identity(img.width(), img.height()) {
+        img
+    } else {
+        small = view.extract(img);
+        &small
+    };
     let unlimited = PrepOptions { max_photo_yarns: usize::MAX, ..opts.clone() };
     if let Ok(p) = prepare(img, &unlimited) {
         return Some(p.grid_overlay());
@@ -1040,6 +1068,58 @@ mod tests {
         assert_eq!(v["n_a"], 4);
         assert!(v["homography"][2][2].as_f64().is_some());
         assert!(v.get("rectified").is_none());
+    }
+
+    /// Length in photo pixels of a step of `d` rectified pixels from `(u, v)` along x (or y).
+    fn photo_step(pr: &Prepared, u: f64, v: f64, d: f64, along_x: bool) -> f64 {
+        use crate::math::linalg::apply;
+        let (x0, y0) = apply(&pr.homography, u, v);
+        let (x1, y1) = if along_x { apply(&pr.homography, u + d, v) } else { apply(&pr.homography, u, v + d) };
+        (x1 - x0).hypot(y1 - y0)
+    }
+
+    /// A photo larger than `WORK_SIDE` whose yarns are wide is prepared on the whole photo
+    /// box-averaged (here by 3): the same grid, pitches in working pixels, the homography in the
+    /// photo's (a pitch maps to the photo's 72 px, at the photo's angle).
+    #[test]
+    fn a_large_photo_is_prepared_on_its_box_averaged_view() {
+        let img = render_rotated(&twill22(), 72.0, 2400, 1800, 2.0);
+        let pr = prepare(&img, &PrepOptions::default()).unwrap();
+        let j = pr.to_json();
+        let v = pr.working.unwrap_or_else(|| panic!("no working view: {j}"));
+        assert_eq!((v.scale, v.x0, v.y0, v.width, v.height), (3, 0, 0, 800, 600), "{j}");
+        assert_eq!((pr.n_e, pr.n_a), (4, 4), "{j}");
+        assert!((pr.pitch_x / 24.0 - 1.0).abs() < 0.02 && (pr.pitch_y / 24.0 - 1.0).abs() < 0.02, "{j}");
+        let (u, v) = (pr.width as f64 / 2.0, pr.height as f64 / 2.0);
+        let px = photo_step(&pr, u, v, pr.pitch_x as f64, true);
+        assert!((px / 72.0 - 1.0).abs() < 0.02, "a pitch is {px} photo px: {j}");
+        let (x0, y0) = crate::math::linalg::apply(&pr.homography, u, v);
+        let (x1, y1) = crate::math::linalg::apply(&pr.homography, u + 100.0, v);
+        let angle = (y1 - y0).atan2(x1 - x0).to_degrees();
+        assert!((angle - 2.0).abs() < 0.5, "weft at {angle}° in the photo: {j}");
+        // The refusal's overlay of such a photo is drawn at the same scale.
+        let overlay = diagnostic_overlay(&img, &PrepOptions::default()).unwrap();
+        assert!(overlay.width() <= working_scale::WORK_SIDE && overlay.height() <= working_scale::WORK_SIDE);
+    }
+
+    /// Yarns too fine for the box-averaged whole photo (16 px at full size, 5 px at a third) are
+    /// prepared on a window at the photo's centre at the scale that keeps them ~16 px wide.
+    #[test]
+    fn fine_yarns_of_a_large_photo_are_prepared_on_a_window_at_full_scale() {
+        let img = render_rotated(&plain(), 16.0, 2200, 1400, -1.0);
+        let pr = prepare(&img, &PrepOptions::default()).unwrap();
+        let j = pr.to_json();
+        let v = pr.working.unwrap_or_else(|| panic!("no working view: {j}"));
+        assert_eq!((v.scale, v.width, v.height), (1, 1024, 1024), "{j}");
+        assert_eq!((v.x0, v.y0), ((2200 - 1024) / 2, (1400 - 1024) / 2), "{j}");
+        assert_eq!((pr.n_e, pr.n_a), (2, 2), "{j}");
+        assert!((pr.pitch_x / 16.0 - 1.0).abs() < 0.02, "{j}");
+        let (u, w) = (pr.width as f64 / 2.0, pr.height as f64 / 2.0);
+        let py = photo_step(&pr, u, w, pr.pitch_y as f64, false);
+        assert!((py / 16.0 - 1.0).abs() < 0.02, "a pitch is {py} photo px: {j}");
+        // The rectified centre lies near the photo's centre (the window is centred).
+        let (x, y) = crate::math::linalg::apply(&pr.homography, u, w);
+        assert!((x - 1100.0).abs() < 40.0 && (y - 700.0).abs() < 40.0, "centre at ({x}, {y}): {j}");
     }
 
     /// Timing on a 1024² synthetic plain weave at pitch 12 (worst case for the repeat mean: ~1700 repeats).
