@@ -64,6 +64,17 @@ pub enum ImageError {
 /// make a load allocate more than that (about 6900×6900 pixels, far above any close-up photo).
 pub const MAX_IMAGE_PIXELS: u64 = (512 << 20) / 12;
 
+/// The message of a decoding error; for a format this build does not read (HEIC from a phone,
+/// WebP from a web page, TIFF from a microscope camera), what it reads and what to do.
+fn decode_message(e: &image::ImageError) -> String {
+    match e {
+        image::ImageError::Unsupported(_) => {
+            format!("{e}; woven reads PNG, JPEG and OpenEXR (.exr): export or convert the photo to one of them")
+        }
+        _ => e.to_string(),
+    }
+}
+
 /// Check that JPEG bytes hold every segment up to the end-of-image marker (JPEG, ITU-T T.81 §B.2):
 /// marker segments carry their length, entropy-coded data after a start-of-scan runs to the next
 /// marker that is not a stuffed `FF 00` or a restart `FF D0`–`FF D7`. A file that ends before `FF D9`
@@ -289,7 +300,7 @@ impl Image {
                     .with_guessed_format()
                     .map_err(|e| read_err(e.to_string()))
             };
-            let (w, h) = reader()?.into_dimensions().map_err(|e| read_err(e.to_string()))?;
+            let (w, h) = reader()?.into_dimensions().map_err(|e| read_err(decode_message(&e)))?;
             check_size(w as u64, h as u64)?;
             let r = reader()?;
             if r.format() == Some(image::ImageFormat::Jpeg) {
@@ -456,6 +467,21 @@ mod tests {
             loaded.get(24, 8),
             loaded.get(24, 56)
         );
+    }
+
+    /// Formats this build does not decode (a phone's HEIC, a web page's WebP) are refused with
+    /// what it reads.
+    #[test]
+    fn an_unsupported_format_is_refused_with_the_formats_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let heic = dir.path().join("photo.heic");
+        std::fs::write(&heic, b"\0\0\0\x18ftypheic\0\0\0\0mif1heic").unwrap();
+        let webp = dir.path().join("photo.webp");
+        std::fs::write(&webp, b"RIFF\x24\0\0\0WEBPVP8 \x18\0\0\0").unwrap();
+        for f in [heic, webp] {
+            let e = Image::load(&f, 8).unwrap_err().to_string();
+            assert!(e.contains("woven reads PNG, JPEG and OpenEXR"), "{e}");
+        }
     }
 
     #[test]
