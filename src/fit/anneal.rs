@@ -44,8 +44,8 @@ pub fn metropolis_accept<R: Rng + ?Sized>(delta: f64, t: f64, rng: &mut R) -> bo
 /// the best state in 7 of 33 logged runs, while the return to the best state at three quarters
 /// and the cold tail after it made most of the gain (docs/benchmarks.md, sessions 21 and 22). At
 /// a tenth the run starts where the old schedule was after 60 of its 100 iterations
-/// (`T0·0.98^60·ln 2 ≈ T0·ln 10 / 7.7`, the same median acceptance), so half the iterations
-/// cover the part of the schedule that pays.
+/// (`T0·0.98^60·ln 2 ≈ T0·ln 10 / 7.7`, the same median acceptance), so a shorter run
+/// (`options::JOINT_ITERATIONS`) covers the part of the schedule that paid.
 pub const ACCEPT0: f64 = 0.1;
 
 /// Energy scale used when none can be calibrated (no uphill proposal among the draws).
