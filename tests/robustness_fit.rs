@@ -100,9 +100,9 @@ fn quick(iterations: &'static str) -> Vec<&'static str> {
 
 /// A fit that would take hours: a check that must come before the fit fails fast only if it does.
 fn endless() -> Vec<&'static str> {
-    // Without `--fast`, which caps the iterations at its own 100: on an idle machine with the
-    // session-15 renderer that cap ended the "endless" joint loop in about a second, before the
-    // test's Ctrl-C arrived.
+    // Without `--fast`, which caps the iterations at the default (100 then, 30 since session 22):
+    // on an idle machine with the session-15 renderer that cap ended the "endless" joint loop in
+    // about a second, before the test's Ctrl-C arrived.
     quick("10000000").into_iter().filter(|a| *a != "--fast").collect()
 }
 

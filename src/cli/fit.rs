@@ -67,7 +67,7 @@ pub struct FitArgs {
     #[arg(long)]
     pub grid: Option<String>,
     /// Optimization iterations.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = woven::fit::JOINT_ITERATIONS)]
     pub iterations: usize,
     /// Pixels per pattern cell of the fit renders.
     #[arg(long, default_value_t = 16)]
@@ -106,7 +106,7 @@ pub struct FitArgs {
     /// Worker threads.
     #[arg(long, allow_negative_numbers = true, value_parser = super::parse_threads)]
     pub threads: Option<usize>,
-    /// Fast settings (10 px per cell, 100 iterations).
+    /// Fast settings (10 px per cell).
     #[arg(long)]
     pub fast: bool,
     /// Do not write fit_noise.png (fit.png with the estimated photo noise of noise.json added).
@@ -669,7 +669,7 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value = "none")]
     pub ablation: AblationArg,
     /// Optimization iterations per fit.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = woven::fit::JOINT_ITERATIONS)]
     pub iterations: usize,
     /// Pixels per cell (targets and fits).
     #[arg(long, default_value_t = 16)]

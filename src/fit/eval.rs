@@ -99,7 +99,7 @@ impl Default for EvalOptions {
             path: EvalPath::Photo,
             seed: 1,
             ablation: Ablation::None,
-            iterations: 100,
+            iterations: super::options::JOINT_ITERATIONS,
             px_per_cell: 16,
             target_spp: 256,
             max_side: 5,

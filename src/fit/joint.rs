@@ -2,7 +2,8 @@
 //! ([`Proposal`]: cells, `n_p`, `n_f`, the inverted twin) and one Adam step of the continuous
 //! parameters (`refine::ContinuousStep`), with the temperature `T_k = T0·decay^k` and the energy
 //! `E = K·MSE`. `K` is calibrated per run from a few proposals drawn at its start so that the
-//! median uphill proposal costs `T0·ln 2` (see [`anneal::energy_scale_from_uphill`]). Each run
+//! median uphill proposal costs `T0·ln 10` (accepted with probability [`anneal::ACCEPT0`], see
+//! [`anneal::energy_scale_from_uphill`]). Each run
 //! keeps its best state; the fit makes one run per start and shares the iterations out.
 
 use super::anneal;
@@ -173,7 +174,7 @@ fn joint_loop(st: &Stage, opts: &JointOptions, start: ClothParams, n_iter: usize
     let mut w = Walker::new(st.ev, start);
     let energy_scale = match opts.energy_scale {
         Some(k) => k,
-        None => w.calibrate(&mut rng, st.cells, opts.t0),
+        None => w.calibrate(&mut rng, st.cells, opts.t0, opts.accept0),
     };
     w.keep_if_best(total_loss(w.mse, &w.cloth.appearance.to_vec()));
 
@@ -289,7 +290,7 @@ impl<'a> Walker<'a> {
 
     /// Draw [`CALIBRATION_DRAWS`] proposals from the current state, taking the downhill ones;
     /// the energy scale from the uphill MSE increases.
-    fn calibrate(&mut self, rng: &mut StdRng, cells: bool, t0: f64) -> f64 {
+    fn calibrate(&mut self, rng: &mut StdRng, cells: bool, t0: f64, accept0: f64) -> f64 {
         let mut ups = Vec::new();
         for _ in 0..CALIBRATION_DRAWS {
             let cand = Proposal::draw(rng, &self.cloth, cells).apply(&self.cloth);
@@ -301,7 +302,7 @@ impl<'a> Walker<'a> {
                 (self.cloth, self.cache, self.mse) = (cand, cc, l);
             }
         }
-        anneal::energy_scale_from_uphill(ups, t0)
+        anneal::energy_scale_from_uphill(ups, t0, accept0)
     }
 
     /// MSE and loss at the current state (re-traced first when stale): the values the

@@ -32,8 +32,8 @@
 //! **Loss unit.** The gradient loss is the MSE of sRGB-encoded 2×2 block means (`evaluator`) plus
 //! the barrier (λ = 0.01 per scalar, raw units). The annealing energy is `E = K·MSE`; `K` is
 //! calibrated per fit from a few proposals drawn at the start of the joint loop so that the median
-//! uphill proposal costs `T0·ln 2`, i.e. half of the early uphill proposals are accepted
-//! (docs/design.md §5); `--energy-scale` fixes it.
+//! uphill proposal costs `T0·ln 10`, i.e. a tenth of the early uphill proposals are accepted
+//! (`anneal::ACCEPT0`, docs/design.md §5); `--energy-scale` fixes it.
 
 pub mod anneal;
 mod candidates;
@@ -70,6 +70,7 @@ pub use input::{check_input, MIN_INPUT_SIDE};
 pub use joint::{Checkpoint, IterLog};
 pub use options::{
     Control, FinishOptions, FitMode, FitOptions, InputOptions, IterCallback, JointOptions, PreOptions, RenderSettings,
+    JOINT_ITERATIONS,
 };
 pub use output::{write_fit_outputs, Written};
 pub use preestimate::grey_appearance;

@@ -158,6 +158,13 @@ impl Default for PreOptions {
     }
 }
 
+/// Default iterations of the joint loop, shared out over its runs. 30 since session 22 (100
+/// before): with the calibrated start temperature of [`anneal::ACCEPT0`] the runs spend them
+/// near the best state, and the finish's rivals and Levenberg–Marquardt polish take the
+/// appearance the rest of the way. 50 and 30 gave the same patterns and crop PSNR within the
+/// scenes' noise on the own, Mitsuba and one-repeat checks (docs/benchmarks.md, session 22).
+pub const JOINT_ITERATIONS: usize = 30;
+
 /// The joint loop: annealing of the discrete parameters and Adam on the continuous ones.
 #[derive(Clone, Debug)]
 pub struct JointOptions {
@@ -175,6 +182,9 @@ pub struct JointOptions {
     pub decay: f64,
     /// Energy per unit MSE; calibrated when `None`.
     pub energy_scale: Option<f64>,
+    /// Probability with which the calibration's median uphill proposal is accepted at `t0`
+    /// ([`anneal::ACCEPT0`]).
+    pub accept0: f64,
     /// End a run once its best loss has stopped falling (`joint::plateau_window` iterations
     /// without a 0.1 % fall); off (the default): every run takes its whole share of
     /// `iterations`. Off because the annealer finds its better discrete states late, while it
@@ -187,12 +197,13 @@ impl Default for JointOptions {
     fn default() -> Self {
         JointOptions {
             mode: FitMode::Joint,
-            iterations: 100,
+            iterations: JOINT_ITERATIONS,
             lr: 0.03,
             radius_every: 5,
             t0: anneal::T0,
             decay: anneal::DECAY,
             energy_scale: None,
+            accept0: anneal::ACCEPT0,
             plateau_stop: false,
         }
     }
@@ -317,7 +328,8 @@ mod tests {
         let d = FitOptions::default();
         assert!(d.input.prep && d.pre.enabled && d.finish.enabled && d.cells_free());
         assert_eq!((d.render.px_per_cell, d.render.spp, d.render.loss_block), (16, 4, 2));
-        assert_eq!((d.joint.iterations, d.joint.t0, d.joint.decay), (100, anneal::T0, anneal::DECAY));
+        assert_eq!((d.joint.iterations, d.joint.t0, d.joint.decay), (30, anneal::T0, anneal::DECAY));
+        assert_eq!(d.joint.accept0, anneal::ACCEPT0);
         assert!(!d.joint.plateau_stop, "the plateau stop is opt-in");
         let f = FitOptions::fast();
         assert_eq!(f.render.px_per_cell, 10);
