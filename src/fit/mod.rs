@@ -263,11 +263,14 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre, &mut stages);
     if let Some((c, r)) = cues.as_ref().filter(|_| !joint.stopped) {
         let (kept, verdict) = cell_cues::contest(&ev, c, r, &cloth, opts.finish.lm_iters, &opts.control.stop);
-        if matches!(verdict, cell_cues::Verdict::TookNamed | cell_cues::Verdict::TookByLoss) {
+        if matches!(
+            verdict,
+            cell_cues::Verdict::TookNamed | cell_cues::Verdict::TookByLoss | cell_cues::Verdict::TookFace
+        ) {
             warnings.push(format!(
                 "the cells read from the photo ({}, {:?}) replaced the fitted pattern {} ({verdict:?})",
-                r.pattern,
-                r.pattern.weave_class(),
+                kept.pattern,
+                kept.pattern.weave_class(),
                 cloth.pattern
             ));
         }
