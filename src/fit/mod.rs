@@ -276,6 +276,20 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         }
         cloth = kept;
         stages.mark("cues", &ev, Some(&cloth));
+        if verdict == cell_cues::Verdict::TookFace {
+            // The face the picture reads was kept against the loss, from a state whose ply and
+            // fibre counts and radii were fitted to the other face: one more joint run from it,
+            // its cells held (`n_p`, `n_f` and the continuous parameters only), and the better
+            // state of the two by the loss (the pattern is the same).
+            let held = Stage { cells: false, ..st };
+            let rerun = joint::run_all(&held, &opts.joint, std::slice::from_ref(&cloth));
+            if let Some((l, c)) = rerun.runs.into_iter().next() {
+                if l < ev.trace_mse(&cloth) {
+                    cloth = c;
+                }
+            }
+            stages.mark("face", &ev, Some(&cloth));
+        }
     }
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
