@@ -61,8 +61,44 @@ fn main() -> Result<()> {
             let ok = r.pattern.equivalent(&t) || r.pattern.reduced().equivalent(&t.reduced());
             format!(" truth {t}: {}", if ok { "RIGHT" } else { "wrong" })
         });
+        // The face: the truth against its inverted twin, each at its best cyclic shift on the
+        // cue grid (the truth tiled to the grid), split into the orientation and link terms.
+        let face = truth.as_ref().map_or(String::new(), |t| {
+            let t = WeavePattern::from_rows_unreduced(&t.rows()).expect("valid");
+            if n_e % t.n_e() != 0 || n_a % t.n_a() != 0 {
+                return " face: grid mismatch".into();
+            }
+            let best = |p: &WeavePattern| -> (f64, f64) {
+                let mut b = (f64::INFINITY, 0.0);
+                for di in 0..n_e {
+                    for dj in 0..n_a {
+                        let lab: Vec<bool> = (0..n_e * n_a)
+                            .map(|k| p.get((k / n_a + di) % p.n_e(), (k % n_a + dj) % p.n_a()))
+                            .collect();
+                        let e = cues.energy(&lab);
+                        let u: f64 = lab
+                            .iter()
+                            .zip(&cues.orient)
+                            .map(|(&v, &o)| if v { -o } else { o })
+                            .sum();
+                        if e < b.0 {
+                            b = (e, u);
+                        }
+                    }
+                }
+                b
+            };
+            let (et, ut) = best(&t);
+            let (ei, ui) = best(&t.inverted());
+            format!(
+                " face: E truth {et:.1} (orient {ut:.1}) twin {ei:.1} (orient {ui:.1}) d {:.1} (orient {:.1} links {:.1})",
+                ei - et,
+                ui - ut,
+                (ei - ui) - (et - ut)
+            )
+        });
         println!(
-            "{}: {n_e}×{n_a} pitch {:.1}×{:.1} copies {} -> {} ({:?}) E {:.1} margin mean {:.1} min {:.1}; unary {}{}",
+            "{}: {n_e}×{n_a} pitch {:.1}×{:.1} copies {} -> {} ({:?}) E {:.1} margin mean {:.1} min {:.1}; unary {}{}{}",
             path.display(),
             p.pitch_x,
             p.pitch_y,
@@ -73,7 +109,8 @@ fn main() -> Result<()> {
             mean_margin,
             min_margin,
             unary,
-            verdict
+            verdict,
+            face
         );
         if std::env::var("CUE_TABLES").is_ok() {
             for (name, v) in [("orient", &cues.orient), ("weft link", &cues.weft_link), ("warp link", &cues.warp_link)]

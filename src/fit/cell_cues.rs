@@ -398,6 +398,47 @@ pub const LOSS_TOLERANCE: f32 = 0.0;
 /// reading, so that a tie in the cues does not overrule the loss.
 pub const MIN_ENERGY_GAIN: f64 = 3.0;
 
+/// Least cue-energy advantage *per cell of the repeat* of a named reading over the winner when the
+/// winner is the reading's inverted twin (the face rule of [`contest`]): each cell then weighs in
+/// with about two standard errors for the reading's face. Measured (docs/benchmarks.md, session
+/// 22, `examples/cell_cues_diag`): of the 72 Mitsuba renders of the five sets and the shared set,
+/// the 35 whose cues could be read and whose pattern is not its own inverse (up to a shift) all
+/// put the truth's cue energy below its twin's, by 0.57 to 57 per cell; all but one by 4.6 or
+/// more (the one-colour 2/1 twills m2121_04 and m2121_08: 5.8 and 16.7). The one below, the
+/// warp-faced satin m1717_05 (0.57), is left to the loss.
+pub const FACE_GAIN_PER_CELL: f64 = 2.0;
+
+/// `true` when `read` is `fit` with every cell flipped, up to a shift, and `fit` is not its own
+/// inverse up to a shift (a plain, a 2/2 twill, a rib or a basket has one face).
+fn is_inverted_twin(fit: &WeavePattern, read: &WeavePattern) -> bool {
+    let inv = fit.inverted();
+    read.equivalent(&inv) && !fit.equivalent(&inv)
+}
+
+/// The cues' verdict on the face of the cloth: `true` when `fit` and `read` are both named weaves
+/// (a weave class other than `Other`, as in [`contest`]), `read` is the inverted twin of `fit` (the same weave seen from the
+/// back), and the cues favour `read` over `fit` by at least [`FACE_GAIN_PER_CELL`] per cell of the
+/// `cues` grid; `false` otherwise (no face question, or the picture does not tell).
+///
+/// Why the picture decides here and not the loss: on one colour the two faces of a twill or satin
+/// differ only in which family floats long, which both the orientation inside each cell and the
+/// continuity across each boundary read directly, while the model's loss compares renders whose
+/// yarn paths and shading are the model's own: a renderer other than the model's can make the
+/// wrong face the model's better fit (the Mitsuba 2/1 twills m2121_04 and m2121_08: the loss of
+/// the truth's face 2.6× and 2.0× its twin's after the same appearance descent, docs/benchmarks.md
+/// session 22), so no loss margin separates "the loss cannot tell" from "the loss knows".
+pub(crate) fn face_verdict(cues: &CellCues, fit: &WeavePattern, read: &WeavePattern) -> bool {
+    use crate::pattern::WeaveClass;
+    let (n_e, n_a) = (cues.n_e, cues.n_a);
+    if (fit.n_e(), fit.n_a()) != (n_e, n_a) || (read.n_e(), read.n_a()) != (n_e, n_a) {
+        return false;
+    }
+    let named = |p: &WeavePattern| p.weave_class() != WeaveClass::Other;
+    let gain = cues.energy(&labelling(fit, n_e, n_a)) - cues.energy(&labelling(read, n_e, n_a));
+    // NaN (no finite energies) is no verdict.
+    named(fit) && named(read) && is_inverted_twin(fit, read) && gain >= FACE_GAIN_PER_CELL * (n_e * n_a) as f64
+}
+
 /// Row-major labelling of `p` (`true` = weft on top), on `n_e × n_a` cells.
 pub fn labelling(p: &WeavePattern, n_e: usize, n_a: usize) -> Vec<bool> {
     (0..n_e).flat_map(|i| (0..n_a).map(move |j| (i, j))).map(|(i, j)| p.get(i, j)).collect()
@@ -424,6 +465,10 @@ fn best_named_reading(cues: &CellCues) -> Option<(WeavePattern, f64)> {
         .min_by(|a, b| a.1.total_cmp(&b.1))
 }
 
+/// Environment variable which, when set, makes [`contest`] print the patterns, the cue energies
+/// and both losses on stderr.
+pub const TRACE_CUES_VAR: &str = "WOVEN_TRACE_CUES";
+
 /// How the contest of `contest` (the fitted pattern against the reading) ended.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Verdict {
@@ -437,6 +482,10 @@ pub enum Verdict {
     TookNamed,
     /// The loss decided (within [`LOSS_TOLERANCE`]): the reading replaced the fit's pattern.
     TookByLoss,
+    /// The face rule ([`face_verdict`]): both are named weaves, the fit's pattern is the reading's
+    /// inverted twin and the cues favour the reading by [`FACE_GAIN_PER_CELL`] per cell: the
+    /// reading's face replaced the fit's, whatever the loss.
+    TookFace,
     /// The loss decided: the fit's pattern stays.
     KeptByLoss,
 }
@@ -457,6 +506,10 @@ pub enum Verdict {
 /// * **An irregular reading against a named winner** hands over to the named weave the cues
 ///   favour most (`best_named_reading`), when they favour it over the winner's pattern by
 ///   [`MIN_ENERGY_GAIN`]; that weave then meets the winner by the loss (next point), both named.
+/// * **The face of the cloth from the picture** ([`face_verdict`]): where both are named and the
+///   winner is the (named) reading's inverted twin — the same weave seen from the back — and the
+///   cues favour the reading's face by [`FACE_GAIN_PER_CELL`] per cell, the reading is kept
+///   whatever the loss (the better of its two variants below).
 /// * **Otherwise the loss decides**: the reading's pattern with the winner's appearance and
 ///   shape, and with the families' colours and radii swapped, each get the same appearance
 ///   descent (`lm_iters` Levenberg–Marquardt iterations, `refine::polish` without radius rounds)
@@ -516,6 +569,20 @@ pub(crate) fn contest(
     }
     let mut own = cloth.clone();
     let l_own = super::refine::polish(ev, &mut own, 0, lm_iters, stop);
+    // The face rule: a named winner and a named reading that are each other's inverted twins,
+    // the cues clearly for the reading's face.
+    let face = face_verdict(cues, &cloth.pattern, &read_pattern);
+    if std::env::var_os(TRACE_CUES_VAR).is_some() {
+        eprintln!(
+            "cues contest: fit {} read {} gain {gain:.1} face {face} loss own {l_own:.4e} cue {l_cue:.4e} ratio {:.3}",
+            cloth.pattern,
+            read_pattern,
+            l_cue / l_own
+        );
+    }
+    if face && l_cue.is_finite() {
+        return (cue, Verdict::TookFace);
+    }
     if l_cue.is_finite() && l_cue <= l_own * (1.0 + LOSS_TOLERANCE) {
         (cue, Verdict::TookByLoss)
     } else {
@@ -630,6 +697,105 @@ mod tests {
         assert!(r.margin.iter().all(|&m| m > 0.0), "{:?}", r.margin);
     }
 
+    /// One-colour yarns of the image-row pattern `rows` (1 = weft on top, `rows[r][j]` image row
+    /// `r` from the top), touching (no dark gaps: the flanks fall to 0.55 of the crown) and each
+    /// float darker toward its ends, where it dives under: the two faces of a twill differ only in
+    /// which family's floats are long. With `blobs`, every cell is instead the same round bump (no
+    /// yarn direction anywhere): a picture that cannot tell a face. Texture coordinates in pitches.
+    fn one_colour_weave(rows: &[Vec<u8>], tx: f64, ty: f64, blobs: bool) -> [f32; 3] {
+        use std::f64::consts::PI;
+        let (n_r, n_c) = (rows.len() as i64, rows[0].len() as i64);
+        let (ci, cj) = (ty.floor() as i64, tx.floor() as i64);
+        let (fx, fy) = (tx - tx.floor(), ty - ty.floor());
+        let weft = |i: i64, j: i64| rows[i.rem_euclid(n_r) as usize][j.rem_euclid(n_c) as usize] == 1;
+        let crown = |across: f64| 0.55 + 0.45 * (PI * across).cos().max(0.0);
+        let b = if blobs {
+            crown(((fx - 0.5).powi(2) + (fy - 0.5).powi(2)).sqrt())
+        } else if weft(ci, cj) {
+            // The weft's float: the run of weft cells along the row through this one.
+            let (mut a, mut z) = (cj, cj);
+            while weft(ci, a - 1) && cj - a < n_c {
+                a -= 1;
+            }
+            while weft(ci, z + 1) && z - cj < n_c {
+                z += 1;
+            }
+            let along = (tx - a as f64) / (z - a + 1) as f64;
+            crown(fy - 0.5) * (0.55 + 0.45 * (PI * along).sin())
+        } else {
+            let (mut a, mut z) = (ci, ci);
+            while !weft(a - 1, cj) && ci - a < n_r {
+                a -= 1;
+            }
+            while !weft(z + 1, cj) && z - ci < n_r {
+                z += 1;
+            }
+            let along = (ty - a as f64) / (z - a + 1) as f64;
+            crown(fx - 0.5) * (0.55 + 0.45 * (PI * along).sin())
+        };
+        let b = b as f32;
+        [0.6 * b, 0.62 * b, 0.58 * b]
+    }
+
+    /// The cues of `one_colour_weave(rows)` at 20 px per cell with noise, and the truth up to a
+    /// shift (where the grid starts in the texture is left to the checks' shifts).
+    fn one_colour_cues(rows: &[Vec<u8>], blobs: bool) -> (CellCues, WeavePattern) {
+        let (pitch, w, h) = ([20.0, 20.0], 240, 240);
+        let img = render_texture_rotated(pitch, w, h, 0.0, |tx, ty| one_colour_weave(rows, tx, ty, blobs));
+        let img = add_noise(&img, 0.01, 11);
+        // Cell boundaries of `render_texture_rotated` at angle 0: x = w/2 + k·pitch.
+        let origin = [(w as f64 / 2.0).rem_euclid(pitch[0]), (h as f64 / 2.0).rem_euclid(pitch[1])];
+        let cues = read_cues(&Gray::from_rgb(&img), pitch, origin, rows.len(), rows[0].len()).expect("cues");
+        (cues, from_image_rows(rows))
+    }
+
+    /// Every cyclic shift of `p`.
+    fn shifts(p: &WeavePattern) -> Vec<WeavePattern> {
+        let rows = p.rows();
+        let (n_e, n_a) = (p.n_e(), p.n_a());
+        (0..n_e)
+            .flat_map(|di| (0..n_a).map(move |dj| (di, dj)))
+            .map(|(di, dj)| {
+                let r: Vec<Vec<bool>> =
+                    (0..n_e).map(|i| (0..n_a).map(|j| rows[(i + di) % n_e][(j + dj) % n_a]).collect()).collect();
+                WeavePattern::from_rows_unreduced(&r).expect("a weave")
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_one_colour_twill_and_its_twin_are_each_read_face_up() {
+        // A weft-faced 2/1 twill and its inverse (warp-faced 1/2), one colour, no gaps.
+        let weft_faced = vec![vec![1, 1, 0], vec![0, 1, 1], vec![1, 0, 1]];
+        let warp_faced: Vec<Vec<u8>> = weft_faced.iter().map(|r| r.iter().map(|&v| 1 - v).collect()).collect();
+        for rows in [weft_faced, warp_faced] {
+            let (cues, truth) = one_colour_cues(&rows, false);
+            let r = cues.read().expect("a reading");
+            assert!(r.pattern.equivalent(&truth), "read {} for {}", r.pattern, truth);
+            // The face rule turns the inverted twin, at any shift, back to the reading, and never
+            // the reading to its twin.
+            for twin in shifts(&truth.inverted()) {
+                assert!(face_verdict(&cues, &twin, &r.pattern), "twin {twin} of {truth}");
+                assert!(!face_verdict(&cues, &r.pattern, &twin), "{} to {twin}", r.pattern);
+            }
+            // Not a face question: the reading against itself shifted, or against a mirrored twill.
+            for other in shifts(&truth) {
+                assert!(!face_verdict(&cues, &other, &r.pattern));
+            }
+        }
+    }
+
+    #[test]
+    fn a_picture_without_yarn_direction_gives_no_face_verdict() {
+        let rows = vec![vec![1, 1, 0], vec![0, 1, 1], vec![1, 0, 1]];
+        let (cues, truth) = one_colour_cues(&rows, true);
+        for (p, twin) in shifts(&truth).iter().flat_map(|p| shifts(&truth.inverted()).into_iter().map(move |t| (p, t)))
+        {
+            assert!(!face_verdict(&cues, &twin, p), "{twin} to {p}");
+            assert!(!face_verdict(&cues, p, &twin), "{p} to {twin}");
+        }
+    }
+
     #[test]
     fn plain_and_twill_renders_are_read_exactly() {
         for (rows, pitch) in [(plain(), 20.0), (twill22(), 16.0)] {
@@ -650,6 +816,50 @@ mod tests {
         assert!(read_cues(&img, [16.0, 16.0], [0.0, 0.0], 4, 4).is_none(), "one copy of a 4×4 repeat in 100 px");
         assert!(read_cues(&img, [16.0, 16.0], [f64::NAN, 0.0], 4, 4).is_none());
         assert!(read_cues(&img, [16.0, 16.0], [0.0, 0.0], 0, 4).is_none());
+    }
+
+    #[test]
+    fn the_face_rule_takes_the_cues_face_of_a_twill_whatever_the_loss() {
+        use crate::fit::candidates::inverted_twin;
+        use crate::fit::evaluator::Evaluator;
+        use crate::fit::preestimate::default_cloth;
+        use crate::fit::target::fit_scene;
+        use crate::scene::LightRig;
+        use std::sync::atomic::AtomicBool;
+        // A one-colour weft-faced 2/1 twill rendered by the model itself: here the loss knows the
+        // face, so a face taken against it shows that the rule, not the loss, decided.
+        let mut truth = default_cloth(WeavePattern::parse("110/011/101").unwrap());
+        truth.appearance.r_b_e = [0.6, 0.5, 0.4];
+        truth.appearance.r_b_a = [0.6, 0.5, 0.4];
+        let (n_e, n_a) = (3, 3);
+        let ev = Evaluator::of_own_render(&truth, fit_scene(n_e, n_a, 8, 2, 1, &LightRig::default_rig()));
+        let stop = AtomicBool::new(false);
+        let twin = inverted_twin(&truth).pattern;
+        // Cues that favour the twin by `t` per cell (orientation only).
+        let cues_for = |t: f64| CellCues {
+            n_e,
+            n_a,
+            orient: labelling(&twin, n_e, n_a).iter().map(|&v| if v { t } else { -t }).collect(),
+            weft_link: vec![0.0; n_e * n_a],
+            warp_link: vec![0.0; n_e * n_a],
+            copies: 4,
+        };
+        let reading = |c: &CellCues| CueReading {
+            pattern: twin.clone(),
+            margin: vec![1.0; 9],
+            energy: c.energy(&labelling(&twin, n_e, n_a)),
+        };
+        // 2 t-units per cell for the twin (an energy gain of 4 per cell): the twin's face is kept.
+        let c = cues_for(2.0);
+        assert!(face_verdict(&c, &truth.pattern, &twin));
+        let (kept, v) = contest(&ev, &c, &reading(&c), &truth, 4, &stop);
+        assert_eq!((v, &kept.pattern), (Verdict::TookFace, &twin));
+        // A quarter of that (1 per cell, under FACE_GAIN_PER_CELL): a contest, which the loss
+        // decides for the truth.
+        let c = cues_for(0.5);
+        assert!(!face_verdict(&c, &truth.pattern, &twin));
+        let (kept, v) = contest(&ev, &c, &reading(&c), &truth, 4, &stop);
+        assert_eq!((v, &kept.pattern), (Verdict::KeptByLoss, &truth.pattern));
     }
 
     #[test]

@@ -264,16 +264,33 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre, &mut stages);
     if let Some((c, r)) = cues.as_ref().filter(|_| !joint.stopped) {
         let (kept, verdict) = cell_cues::contest(&ev, c, r, &cloth, opts.finish.lm_iters, &opts.control.stop);
-        if matches!(verdict, cell_cues::Verdict::TookNamed | cell_cues::Verdict::TookByLoss) {
+        if matches!(
+            verdict,
+            cell_cues::Verdict::TookNamed | cell_cues::Verdict::TookByLoss | cell_cues::Verdict::TookFace
+        ) {
             warnings.push(format!(
                 "the cells read from the photo ({}, {:?}) replaced the fitted pattern {} ({verdict:?})",
-                r.pattern,
-                r.pattern.weave_class(),
+                kept.pattern,
+                kept.pattern.weave_class(),
                 cloth.pattern
             ));
         }
         cloth = kept;
         stages.mark("cues", &ev, Some(&cloth));
+        if verdict == cell_cues::Verdict::TookFace {
+            // The face the picture reads was kept against the loss, from a state whose ply and
+            // fibre counts and radii were fitted to the other face: one more joint run from it,
+            // its cells held (`n_p`, `n_f` and the continuous parameters only), and the better
+            // state of the two by the loss (the pattern is the same).
+            let held = Stage { cells: false, ..st };
+            let rerun = joint::run_all(&held, &opts.joint, std::slice::from_ref(&cloth));
+            if let Some((l, c)) = rerun.runs.into_iter().next() {
+                if l < ev.trace_mse(&cloth) {
+                    cloth = c;
+                }
+            }
+            stages.mark("face", &ev, Some(&cloth));
+        }
     }
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));

@@ -11,7 +11,8 @@ use std::time::Instant;
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct StageTime {
     /// Stage name (`prep`, `rank`, `warm-up`, `sweeps`, `twin`, `view`, `twist`, `joint`,
-    /// `rivals`, `toggles`, `cues`, `light`, `yarn colours`, `polish`, `shape`, `hair`,
+    /// `rivals`, `toggles`, `cues`, `face` (a joint run with the cells held after the cues kept
+    /// the cloth's other face, `cell_cues::Verdict::TookFace`), `light`, `yarn colours`, `polish`, `shape`, `hair`,
     /// `exposure` (a photo's exposure traded against body colours at their bound), `display
     /// range` (the colours of an input brighter than 1 fitted again, `fit::display_range`),
     /// `texture`, `output`).
