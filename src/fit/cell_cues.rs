@@ -399,7 +399,7 @@ pub const LOSS_TOLERANCE: f32 = 0.0;
 pub const MIN_ENERGY_GAIN: f64 = 3.0;
 
 /// Least cue-energy advantage *per cell of the repeat* of a named reading over the winner when the
-/// winner is the reading's inverted twin (the face rule of [`contest`]): each cell then weighs in
+/// winner is the reading's inverted twin (the face rule of `contest`): each cell then weighs in
 /// with about two standard errors for the reading's face. Measured (docs/benchmarks.md, session
 /// 22, `examples/cell_cues_diag`): of the 72 Mitsuba renders of the five sets and the shared set,
 /// the 35 whose cues could be read and whose pattern is not its own inverse (up to a shift) all
@@ -465,7 +465,7 @@ fn best_named_reading(cues: &CellCues) -> Option<(WeavePattern, f64)> {
         .min_by(|a, b| a.1.total_cmp(&b.1))
 }
 
-/// Environment variable which, when set, makes [`contest`] print the patterns, the cue energies
+/// Environment variable which, when set, makes `contest` print the patterns, the cue energies
 /// and both losses on stderr.
 pub const TRACE_CUES_VAR: &str = "WOVEN_TRACE_CUES";
 
@@ -482,7 +482,7 @@ pub enum Verdict {
     TookNamed,
     /// The loss decided (within [`LOSS_TOLERANCE`]): the reading replaced the fit's pattern.
     TookByLoss,
-    /// The face rule ([`face_verdict`]): both are named weaves, the fit's pattern is the reading's
+    /// The face rule (`face_verdict`): both are named weaves, the fit's pattern is the reading's
     /// inverted twin and the cues favour the reading by [`FACE_GAIN_PER_CELL`] per cell: the
     /// reading's face replaced the fit's, whatever the loss.
     TookFace,
