@@ -188,6 +188,22 @@ impl Image {
         self.data[(y * self.width + x) as usize]
     }
 
+    /// Bilinear sample at pixel position `(x, y)` (pixel centres at integers), the image repeated
+    /// periodically in both directions (a repeat of periodic cloth, a noise field made by an inverse
+    /// FFT); a non-finite position reads pixel (0, 0).
+    pub fn sample_wrapped(&self, x: f64, y: f64) -> [f32; 3] {
+        let (w, h) = (self.width as i64, self.height as i64);
+        if !(x.is_finite() && y.is_finite()) {
+            return self.get(0, 0);
+        }
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
+        let at = |i: i64, j: i64| self.get(i.rem_euclid(w) as u32, j.rem_euclid(h) as u32);
+        let (i, j) = (x0 as i64, y0 as i64);
+        let (p00, p10, p01, p11) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
+        [0, 1, 2].map(|k| (1.0 - fy) * ((1.0 - fx) * p00[k] + fx * p10[k]) + fy * ((1.0 - fx) * p01[k] + fx * p11[k]))
+    }
+
     /// 8-bit sRGB encoding.
     pub fn to_srgb8(&self) -> image::RgbImage {
         image::RgbImage::from_fn(self.width, self.height, |x, y| {

@@ -706,20 +706,15 @@ impl NoiseModel {
             return self.add_to(img, seed);
         }
         let n = self.synthesize(img.width.div_ceil(scale), img.height.div_ceil(scale), seed);
-        let (nw, nh) = (n.width as i64, n.height as i64);
         let k = scale as f64;
         // Photo pixel x is view coordinate (x − (k − 1)/2)/k (pixel centres at integers); the
         // synthesized field is periodic (an inverse FFT), so it is sampled with wrap-around.
-        let at = |i: i64, j: i64| n.data[(j.rem_euclid(nh) * nw + i.rem_euclid(nw)) as usize];
         let off = (k - 1.0) / 2.0;
         let w = img.width as usize;
         for (idx, p) in img.data.iter_mut().enumerate() {
-            let (u, v) = (((idx % w) as f64 - off) / k, ((idx / w) as f64 - off) / k);
-            let (i, j) = (u.floor() as i64, v.floor() as i64);
-            let (fx, fy) = ((u - u.floor()) as f32, (v - v.floor()) as f32);
-            let (a, b, c, d) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
+            let q = n.sample_wrapped(((idx % w) as f64 - off) / k, ((idx / w) as f64 - off) / k);
             for ch in 0..3 {
-                p[ch] += (1.0 - fy) * ((1.0 - fx) * a[ch] + fx * b[ch]) + fy * ((1.0 - fx) * c[ch] + fx * d[ch]);
+                p[ch] += q[ch];
             }
         }
     }

@@ -206,26 +206,11 @@ impl RegisteredTile {
                 // Pixel centres: rectified pixel u covers [u, u + 1) in edge coordinates.
                 let a = (u - s[0] + 0.5 - p.crop.x as f64) / cw * tw - 0.5;
                 let b = (v - s[1] + 0.5 - p.crop.y as f64) / ch * th - 0.5;
-                data.push(sample_wrapped(&tile, a, b));
+                data.push(tile.sample_wrapped(a, b));
             }
         }
         Image::new(w, h, data)
     }
-}
-
-/// Bilinear sample of `img` at pixel position `(x, y)` (pixel centres at integers), the image
-/// repeated periodically in both directions.
-fn sample_wrapped(img: &Image, x: f64, y: f64) -> [f32; 3] {
-    let (w, h) = (img.width as i64, img.height as i64);
-    if !(x.is_finite() && y.is_finite()) {
-        return img.get(0, 0);
-    }
-    let (x0, y0) = (x.floor(), y.floor());
-    let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
-    let at = |i: i64, j: i64| img.get(i.rem_euclid(w) as u32, j.rem_euclid(h) as u32);
-    let (i, j) = (x0 as i64, y0 as i64);
-    let (p00, p10, p01, p11) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
-    [0, 1, 2].map(|k| (1.0 - fy) * ((1.0 - fx) * p00[k] + fx * p10[k]) + fy * ((1.0 - fx) * p01[k] + fx * p11[k]))
 }
 
 /// How well the registered fit matches the whole photo.
