@@ -167,8 +167,7 @@ impl RegisteredTile {
         let (n_e, n_a) = (res.cloth.pattern.n_e(), res.cloth.pattern.n_a());
         let (cw, ch) = (p.crop.w.max(1) as f64, p.crop.h.max(1) as f64);
         // The crop is in working pixels (`prep::working_scale`); the photo has `scale` times more.
-        let scale = p.working.map_or(1.0, |v| v.scale as f64);
-        let photo_c = ((cw / n_a as f64).max(ch / n_e as f64) * scale) as f32;
+        let photo_c = ((cw / n_a as f64).max(ch / n_e as f64) * p.working_scale() as f64) as f32;
         let c = photo_c.clamp(REGISTER_PX_PER_CELL.0, REGISTER_PX_PER_CELL.1).round() as u32;
         let scene = Scene {
             width: n_a as u32 * c,
@@ -531,7 +530,7 @@ pub fn write_outputs(
     // and SSIM against the photo are reported, so the two can be flipped.
     if let Some(m) = noise {
         let mut noisy = full;
-        let scale = res.prep.as_ref().and_then(|p| p.working).map_or(1, |v| v.scale);
+        let scale = res.prep.as_ref().map_or(1, |p| p.working_scale());
         m.add_to_scaled(&mut noisy, res.params.scene.seed, scale);
         noisy.save_png(&dir.join("fit_noise.png"))?;
     }

@@ -643,6 +643,7 @@ fn flatten_for_period(g: &Gray, max_pitch: f64, pitch: f64) -> Gray {
 /// limit, else the rectified image with the yarn boundaries of the first pitch estimate drawn in
 /// red along the axes where one was found, else the rectified image alone. `None` only for an
 /// image too small or non-finite to rectify.
+///
 /// A photo larger than [`working_scale::WORK_SIDE`] is drawn at its overview scale
 /// ([`working_scale::overview`]).
 pub fn diagnostic_overlay(img: &Rgb32FImage, opts: &PrepOptions) -> Option<Rgb32FImage> {
@@ -734,6 +735,12 @@ impl Prepared {
             }
         }
         img
+    }
+
+    /// Photo pixels per pixel of the preparation's geometry: the working view's factor
+    /// ([`working_scale`]), 1 where the photo itself was prepared.
+    pub fn working_scale(&self) -> u32 {
+        self.working.map_or(1, |v| v.scale)
     }
 
     /// Everything except the images, as pretty JSON (for `prep.json`).

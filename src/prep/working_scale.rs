@@ -110,21 +110,18 @@ impl WorkingView {
     }
 }
 
-/// Runs `prepare_view` (the preparation proper) on the photo itself when its longest side is at
-/// most [`WORK_SIDE`], else on the working views of the module docs; the result's homography maps
-/// rectified pixels to photo pixels and `working` records the view used.
+/// Runs `prepare_view` (the preparation proper) on the photo itself when its [`overview`] is the
+/// photo (longest side at most [`WORK_SIDE`], or a short side too small to shrink), else on the
+/// working views of the module docs; the result's homography maps rectified pixels to photo
+/// pixels and `working` records the view used.
 pub fn prepare_scaled(
     img: &Rgb32FImage,
     prepare_view: impl Fn(&Rgb32FImage) -> Result<Prepared, PrepError>,
 ) -> Result<Prepared, PrepError> {
     let (w, h) = img.dimensions();
-    let side = w.max(h);
-    if side <= WORK_SIDE {
-        return prepare_view(img);
-    }
     let whole = overview(w, h);
     let k0 = whole.scale;
-    if whole.scale == 1 {
+    if k0 == 1 {
         return prepare_view(img);
     }
     let coarse = prepare_view(&whole.extract(img)).map(|p| in_photo(p, whole)).map_err(|e| photo_error(e, whole, w, h));
@@ -132,14 +129,13 @@ pub fn prepare_scaled(
     if p0.is_some_and(|p| p >= FINE_PITCH) {
         return coarse;
     }
+    // Here `p0 < FINE_PITCH < WANT_PITCH` (or no grid), so `k1 < k0`: always a finer view.
     let k1 = p0.map_or(1, |p| ((k0 as f32 * p / WANT_PITCH).floor() as u32).clamp(1, k0));
     let window = WorkingView::centre_window(w, h, k1, WORK_SIDE);
-    if k1 < k0 || window != whole {
-        if let Ok(p) = prepare_view(&window.extract(img)) {
-            return Ok(in_photo(p, window));
-        }
+    match prepare_view(&window.extract(img)) {
+        Ok(p) => Ok(in_photo(p, window)),
+        Err(_) => coarse,
     }
-    coarse
 }
 
 /// The whole photo of `w × h` pixels at the least integer factor that brings its longest side to
