@@ -48,11 +48,20 @@ fn time<R>(reps: usize, mut f: impl FnMut() -> R) -> (f64, R) {
 /// `USER_HZ` of every Linux ABI); `None` where that file does not exist. The machine is shared, so
 /// wall times move with the load while CPU seconds do not (docs/benchmarks.md compares CPU seconds).
 pub fn cpu_seconds() -> Option<(f64, f64)> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // The command name (field 2) is in parentheses and may hold spaces: count after the last ')'.
+    cpu_seconds_of_stat(&std::fs::read_to_string("/proc/self/stat").ok()?)
+}
+
+/// Clock ticks per second of `/proc/self/stat`'s times: `USER_HZ`, fixed at 100 in Linux's
+/// user-space interface on every architecture it supports.
+const USER_HZ: f64 = 100.0;
+
+/// `(utime + stime, cutime + cstime)` in seconds from the text of a `/proc/PID/stat` file.
+fn cpu_seconds_of_stat(stat: &str) -> Option<(f64, f64)> {
+    // The command name (field 2) is in parentheses and may hold spaces and parentheses: count
+    // after the last ')', where field 3 (state) is the first and utime..cstime are fields 14–17.
     let rest = &stat[stat.rfind(')')? + 1..];
     let f: Vec<f64> = rest.split_whitespace().skip(11).take(4).map(|v| v.parse().unwrap_or(f64::NAN)).collect();
-    (f.len() == 4 && f.iter().all(|v| v.is_finite())).then(|| ((f[0] + f[1]) / 100.0, (f[2] + f[3]) / 100.0))
+    (f.len() == 4 && f.iter().all(|v| v.is_finite())).then(|| ((f[0] + f[1]) / USER_HZ, (f[2] + f[3]) / USER_HZ))
 }
 
 /// The 1-minute load average (`/proc/loadavg`), to print beside wall times.
@@ -601,6 +610,16 @@ pub fn visibility_table(cloth: &ClothParams) -> Result<String> {
 mod tests {
     use super::*;
     use crate::progress::NoProgress;
+
+    #[test]
+    fn cpu_time_is_read_past_a_command_name_with_spaces_and_parentheses() {
+        // pid (comm) state ppid pgrp session tty tpgid flags minflt cminflt majflt cmajflt utime stime cutime cstime …
+        let stat = "4242 (wov en) (x)) R 1 2 3 4 5 6 7 8 9 10 250 75 30 20 20 0 3 0";
+        assert_eq!(cpu_seconds_of_stat(stat), Some((3.25, 0.5)));
+        assert_eq!(cpu_seconds_of_stat("4242 (woven) R 1 2"), None);
+        assert_eq!(cpu_seconds_of_stat("4242 (woven) R 1 2 3 4 5 6 7 8 9 10 x 75 0 0"), None);
+        assert_eq!(cpu_seconds_of_stat("no parenthesis"), None);
+    }
 
     fn woven_side() -> WovenSide {
         let mut rows = BTreeMap::new();

@@ -71,26 +71,9 @@ impl StageClock {
     }
 }
 
-/// Clock ticks per second of `/proc/self/stat`'s times: `USER_HZ`, fixed at 100 in Linux's
-/// user-space interface on every architecture it supports.
-const USER_HZ: f64 = 100.0;
-
-/// CPU seconds (user + system, all threads) the process has used, from `/proc/self/stat`
-/// (fields 14 and 15, `utime` and `stime`, counted after the command name's closing parenthesis,
-/// which may itself hold spaces); `None` where that file does not exist or cannot be read.
+/// CPU seconds (user + system, all threads) the process has used so far ([`crate::bench::cpu_seconds`]).
 fn process_cpu_secs() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    cpu_secs_of_stat(&stat)
-}
-
-/// `utime + stime` in seconds from the text of a `/proc/PID/stat` file.
-fn cpu_secs_of_stat(stat: &str) -> Option<f64> {
-    let rest = &stat[stat.rfind(')')? + 1..];
-    // After ")": field 3 (state) is the first; utime and stime are fields 14 and 15.
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let utime: f64 = fields.get(11)?.parse().ok()?;
-    let stime: f64 = fields.get(12)?.parse().ok()?;
-    Some((utime + stime) / USER_HZ)
+    crate::bench::cpu_seconds().map(|(own, _children)| own)
 }
 
 /// The stages as one line: `name secs s (cpu c s, n traces, loss l)` each.
@@ -112,15 +95,6 @@ mod tests {
     use crate::fit::target::fit_scene;
     use crate::image_io::Image;
     use crate::scene::LightRig;
-
-    #[test]
-    fn cpu_time_is_read_past_a_command_name_with_spaces_and_parentheses() {
-        // pid (comm) state ppid pgrp session tty tpgid flags minflt cminflt majflt cmajflt utime stime …
-        let stat = "4242 (wov en) (x)) R 1 2 3 4 5 6 7 8 9 10 250 75 0 0 20 0 3 0";
-        assert_eq!(cpu_secs_of_stat(stat), Some(3.25));
-        assert_eq!(cpu_secs_of_stat("4242 (woven) R 1 2"), None);
-        assert_eq!(cpu_secs_of_stat("no parenthesis"), None);
-    }
 
     #[test]
     fn marks_count_each_stages_retraces_and_not_the_loss_probe() {
