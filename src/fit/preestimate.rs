@@ -25,6 +25,15 @@ use std::sync::atomic::{AtomicBool, Ordering};
 /// Radius rounds of a warm-up polish.
 const WARMUP_ROUNDS: usize = 1;
 
+/// The confidence (the least agreeing logit over the cells, [`reading_confidence`]) at which a
+/// network reading that the cells read from the photo's structure (`cell_cues`) agree with is the
+/// only candidate the warm-up sees. Why 2 (σ = 0.88 on the least certain cell): on the 83 Mitsuba 3
+/// renders of sessions 16–22, the shipped model's readings that reached 2 were 34 scenes, 33 of
+/// them exact (at 1: 41, 37 exact); two independent readers agreeing on top of that leaves the
+/// warm-up's ranking nothing to decide, and the warm-up is ~40 % of a fit (docs/benchmarks.md,
+/// "Session 23: the pre-estimator on 24 000 views").
+const NET_SURE_LOGIT: f32 = 2.0;
+
 /// Grey default appearance of the pre-estimation (paper §5.1).
 pub fn grey_appearance() -> Appearance {
     Appearance {
@@ -123,8 +132,12 @@ pub(crate) fn pre_estimate(
         vec![cloth.pattern.clone()]
     };
     let mut shortlist = shortlist;
+    let mut sure = None;
     if st.cells && opts.network {
-        if let Some(p) = network_pattern(st.ev.target(), (n_e, n_a), opts.model.as_deref(), warnings)? {
+        if let Some((p, confidence)) = network_pattern(st.ev.target(), (n_e, n_a), opts.model.as_deref(), warnings)? {
+            if confidence >= NET_SURE_LOGIT && cue == Some(&p) {
+                sure = Some(p.clone());
+            }
             if !shortlist.contains(&p) {
                 shortlist.push(p);
             }
@@ -133,6 +146,11 @@ pub(crate) fn pre_estimate(
     // The cells read from the photo's structure (`cell_cues`) are one more candidate.
     if let Some(p) = cue.filter(|p| st.cells && !shortlist.contains(p)) {
         shortlist.push(p.clone());
+    }
+    // A sure network reading that the cues agree with is the only candidate (`NET_SURE_LOGIT`);
+    // the twin contest, the sweeps and the finish's rivals still question it.
+    if let Some(p) = sure {
+        shortlist = vec![p];
     }
     clock.mark("rank", st.ev, None);
     // Warm-up: every shortlisted pattern gets its shape scans, colour estimate and a polish at
@@ -280,26 +298,28 @@ pub(crate) fn fit_view(ev: &Evaluator, cloth: &ClothParams, blur0: f32) -> ((i32
 
 /// The pattern the pre-estimator network reads in the fit's target (`n_e × n_a` cells): one
 /// over/under logit per cell, averaged over the copies of each cell in the network's tiled view
-/// (`net::read_view`), then pooled by colour where that applies ([`network_reading`]). `model`
-/// replaces the shipped network. `None` (with a warning) when the network cannot read the target
-/// or reads a pattern in which a yarn floats; a model file that cannot be loaded is an error (it
-/// was asked for).
+/// (`net::read_view`), then pooled by colour where that applies ([`network_reading`]), with its
+/// confidence ([`reading_confidence`] of the cells' own logits). `model` replaces the shipped
+/// network. `None` (with a warning) when the network cannot read the target or reads a pattern in
+/// which a yarn floats; a model file that cannot be loaded is an error (it was asked for).
 fn network_pattern(
     target: &Image,
     (n_e, n_a): (usize, usize),
     model: Option<&Path>,
     warnings: &mut Vec<String>,
-) -> Result<Option<WeavePattern>> {
+) -> Result<Option<(WeavePattern, f32)>> {
     let net = match model {
         Some(m) => crate::net::PreEstimator::load(m)
             .with_context(|| format!("loading the pre-estimator {} (given with --model)", m.display()))?,
         None => crate::pre::shipped_model().context("loading the shipped pre-estimator")?,
     };
-    let read = crate::net::read_view(&net, target, n_e, n_a)
-        .map_err(anyhow::Error::from)
-        .and_then(|v| network_reading(&v, target, n_e, n_a));
+    let read = crate::net::read_view(&net, target, n_e, n_a).map_err(anyhow::Error::from).and_then(|v| {
+        let (p, _) = network_reading(&v, target, n_e, n_a)?;
+        let confidence = reading_confidence(&v.cell_logits, &p);
+        Ok((p, confidence))
+    });
     match read {
-        Ok((p, _)) => Ok(Some(p)),
+        Ok(r) => Ok(Some(r)),
         Err(e) => {
             warnings.push(format!("the pre-estimator network gave no usable pattern ({e:#}); ranked candidates only"));
             Ok(None)
@@ -334,6 +354,24 @@ pub(crate) fn network_reading(
         return Ok((p, true));
     }
     Ok((weave(view)?, false))
+}
+
+/// How strongly the cells' own logits back the reading `p` (on their grid): the least, over the
+/// cells, of the logit signed towards `p`'s cell (`l` where weft lies over warp in `p`, else `−l`),
+/// floored at 0. A cell that the colour pooling turned against its own logit, or one the network
+/// hardly sees, makes the whole reading unsure; 0 when the grids differ.
+fn reading_confidence(logits: &[Vec<f32>], p: &WeavePattern) -> f32 {
+    if logits.len() != p.n_e() || logits.iter().any(|r| r.len() != p.n_a()) {
+        return 0.0;
+    }
+    let mut least = f32::INFINITY;
+    for (i, row) in logits.iter().enumerate() {
+        for (j, &l) in row.iter().enumerate() {
+            let toward = if p.get(i, j) { l } else { -l };
+            least = least.min(if toward.is_finite() { toward } else { 0.0 });
+        }
+    }
+    least.max(0.0)
 }
 
 /// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and
@@ -643,6 +681,18 @@ mod tests {
         assert!(won.r_e > won.r_a, "radii {} {}", won.r_e, won.r_a);
         // Started from the truth, the contest keeps it.
         assert_eq!(twin_contest(&ev, &truth, 8, &stop).1.pattern, truth.pattern);
+    }
+
+    #[test]
+    fn a_reading_is_as_sure_as_its_least_agreeing_cell() {
+        let p = WeavePattern::from_rows_unreduced(&[vec![true, false], vec![false, true]]).unwrap();
+        let logits = vec![vec![3.0, -2.5], vec![-4.0, 6.0]];
+        assert_eq!(reading_confidence(&logits, &p), 2.5);
+        // A cell whose logit points the other way (pooling turned it) makes the reading unsure.
+        assert_eq!(reading_confidence(&[vec![3.0, 0.5], vec![-4.0, 6.0]], &p), 0.0);
+        // NaN, or another grid, is no confidence at all.
+        assert_eq!(reading_confidence(&[vec![f32::NAN, -2.5], vec![-4.0, 6.0]], &p), 0.0);
+        assert_eq!(reading_confidence(&[vec![3.0, -2.5, 1.0], vec![-4.0, 6.0, 1.0]], &p), 0.0);
     }
 
     #[test]
