@@ -425,9 +425,9 @@ fn yarn_pitch(
         }
         let eg = edge_grid(g, axis_x, cand);
         // The profile must peak near the candidate lag: a smooth profile correlates at any short
-        // lag, but only a real repeat brings the correlation back up.
-        let (lo, hi) =
-            ((0.75 * eg.0).floor() as usize, ((1.25 * eg.0).ceil() as usize).min(ac.len().saturating_sub(2)));
+        // lag, but only a real repeat brings the correlation back up (`fraction_peak_lags`).
+        let (lo, hi) = fraction_peak_lags(eg.0, pitch_ac, k);
+        let hi = hi.min(ac.len().saturating_sub(2));
         // The log profile's peak must also sit where `k` yarns fill the repeat (within ±12 % of
         // `pitch_ac / k`, the edge search's range): its peaks are sharp at the true yarn pitch,
         // and the ±25 % window alone let the neighbouring fractions (a 3×3 basket's 64 px repeat
@@ -496,6 +496,28 @@ fn yarn_pitch(
         }
     }
     best
+}
+
+/// The lags `lo..=hi` at which the profile's autocorrelation must peak for the fraction
+/// `pitch_ac / k` (edge pitch `q`) of the repeat `pitch_ac` to be the yarn pitch (`k` ≥ 2):
+/// ±25 % of `q`, but never past the midpoint between the fraction and the next coarser one,
+/// `pitch_ac / (k − 1)`.
+///
+/// Why: the fractions `pitch_ac / k` crowd together as `k` grows (a 22.2 px repeat: 7.4 px for
+/// 3 yarns, 5.55 px for 4), and `q + 25 %` then reaches the coarser fraction's own lag (6.9 px
+/// rounded up to 7, where the 3 yarns' peak sits). Taking the smallest fraction whose window
+/// holds a peak, the 4-yarn candidate claimed the 3-yarn peak (0.32–0.47 on the seed-2222 random
+/// 3 × 5, whose edge fundamental at 5.55 px, 0.09–0.11, passes the edge floors) and the weft
+/// count came out 4 instead of 3. A peak nearer the coarser fraction is that fraction's
+/// evidence, not this one's. The bound bites from `k = 4` on: for `k` = 2 and 3 the midpoint
+/// (1.5 q and 1.25 q) is at or past +25 %, so there it can only round the upper lag down by one
+/// (no grid of the 84 Mitsuba renders or the 37 real photos of the prep survey changed but
+/// that random 3 × 5's).
+fn fraction_peak_lags(q: f64, pitch_ac: f64, k: usize) -> (usize, usize) {
+    let cand = pitch_ac / k as f64;
+    let coarser = pitch_ac / k.saturating_sub(1).max(1) as f64;
+    let hi = ((1.25 * q).ceil() as usize).min((0.5 * (cand + coarser)).floor() as usize);
+    ((0.75 * q).floor() as usize, hi)
 }
 
 /// Smallest factor by which the edge lattice may be coarser than the profile's first pitch (the
@@ -952,6 +974,22 @@ pub fn line_shift_yarns(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The 4-yarn fraction of a 22.2 px repeat (5.55 px) may not look for its profile peak at
+    /// the 3-yarn fraction's lag (7.4 px, sampled at 7): the window stops at the midpoint 6.47.
+    /// The 3- and 2-yarn fractions keep their ±25 % windows (up to rounding the upper lag down).
+    #[test]
+    fn a_fraction_does_not_claim_the_coarser_fractions_peak() {
+        let (lo, hi) = fraction_peak_lags(5.55, 22.2, 4);
+        assert_eq!((lo, hi), (4, 6), "4 yarns: {lo}..={hi}");
+        assert!(!(lo..=hi).contains(&7));
+        let (lo, hi) = fraction_peak_lags(7.4, 22.2, 3);
+        assert!((lo..=hi).contains(&7) && (lo, hi) == (5, 9), "3 yarns: {lo}..={hi}");
+        assert_eq!(fraction_peak_lags(11.1, 22.2, 2), (8, 14));
+        // A 64 px repeat over 8 yarns (8 px): 7 yarns' lag (9.14 px) is past the window.
+        let (lo, hi) = fraction_peak_lags(8.0, 64.0, 8);
+        assert_eq!((lo, hi), (6, 8));
+    }
 
     /// A yarn boundary (a dark gap) is a valley, a specular highlight line is a ridge: only the
     /// first counts in `valley_energy`, across either axis, and a dark band wider than `2r` (a
