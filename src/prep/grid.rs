@@ -544,7 +544,7 @@ fn fraction_peak_lags(q: f64, pitch_ac: f64, k: usize) -> (usize, usize) {
 /// 8 px half-yarns were taken and the repeat came out 2 × 8 cells instead of 2 × 4. The valleys
 /// at 8 px repeat at 0.02–0.12 against 0.75–0.78 at 16 px.
 fn halves_a_yarn(edges_repeat: bool, k: usize, valley_k: Option<usize>) -> bool {
-    !edges_repeat || (k % 2 == 0 && valley_k == Some(k / 2))
+    !edges_repeat || (k.is_multiple_of(2) && valley_k == Some(k / 2))
 }
 
 /// Smallest factor by which the edge lattice may be coarser than the profile's first pitch (the
