@@ -90,11 +90,18 @@ fn main() -> Result<()> {
             };
             let (et, ut) = best(&t);
             let (ei, ui) = best(&t.inverted());
+            // The mirror (S against Z twill): every row read right to left.
+            let rows: Vec<Vec<bool>> = t.rows().into_iter().map(|r| r.into_iter().rev().collect()).collect();
+            let mirror = WeavePattern::from_rows_unreduced(&rows).expect("valid");
+            let (em, _) = best(&mirror);
+            let own_mirror = mirror.equivalent(&t);
             format!(
-                " face: E truth {et:.1} (orient {ut:.1}) twin {ei:.1} (orient {ui:.1}) d {:.1} (orient {:.1} links {:.1})",
+                " face: E truth {et:.1} (orient {ut:.1}) twin {ei:.1} (orient {ui:.1}) d {:.1} (orient {:.1} links {:.1}) mirror {} d_per_cell {:.2}",
                 ei - et,
                 ui - ut,
-                (ei - ui) - (et - ut)
+                (ei - ui) - (et - ut),
+                if own_mirror { "self" } else { "other" },
+                (em - et) / (n_e * n_a) as f64
             )
         });
         println!(

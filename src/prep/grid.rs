@@ -400,7 +400,8 @@ pub const FINE_DIVIDES_TOL: f64 = 0.015;
 /// not anti-correlate there (random patterns, glossy crowns: see the loop); and a fraction is
 /// refused whatever the profile says where it is half a yarn by its valleys
 /// (`ValleyRepeat::half_a_yarn`) and the edges do not repeat there (a highlight line along each
-/// yarn). The smallest such fraction wins. With [`Fractions::Linear`] neither the log profile nor
+/// yarn), or it halves a lattice the valleys made ([`halves_a_yarn`]). The smallest such
+/// fraction wins. With [`Fractions::Linear`] neither the log profile nor
 /// the valleys are consulted (see [`Fractions`] for where that matters).
 fn yarn_pitch(
     g: &Gray,
@@ -418,6 +419,8 @@ fn yarn_pitch(
         Fractions::Linear => Vec::new(),
     };
     let mut best = (pitch_ac, base);
+    // The fraction `k` of the lattice taken last by its valleys (the route below), if it was.
+    let mut valley_k: Option<usize> = None;
     for k in 2..=8 {
         let cand = pitch_ac / k as f64;
         if cand < min_pitch.max(3.0) {
@@ -425,9 +428,9 @@ fn yarn_pitch(
         }
         let eg = edge_grid(g, axis_x, cand);
         // The profile must peak near the candidate lag: a smooth profile correlates at any short
-        // lag, but only a real repeat brings the correlation back up.
-        let (lo, hi) =
-            ((0.75 * eg.0).floor() as usize, ((1.25 * eg.0).ceil() as usize).min(ac.len().saturating_sub(2)));
+        // lag, but only a real repeat brings the correlation back up (`fraction_peak_lags`).
+        let (lo, hi) = fraction_peak_lags(eg.0, pitch_ac, k);
+        let hi = hi.min(ac.len().saturating_sub(2));
         // The log profile's peak must also sit where `k` yarns fill the repeat (within ±12 % of
         // `pitch_ac / k`, the edge search's range): its peaks are sharp at the true yarn pitch,
         // and the ±25 % window alone let the neighbouring fractions (a 3×3 basket's 64 px repeat
@@ -465,10 +468,13 @@ fn yarn_pitch(
             // and its edges are not the boundaries' (so the edge energy does not repeat there). Where
             // the edges do repeat at the candidate, its lines are boundaries that make steps rather
             // than valleys (flat carbon tows meeting, whose float ends are the only valleys).
-            if !edges_repeat() && valleys().is_some_and(|v| v.half_a_yarn()) {
+            // Nor do repeating edges save a candidate that halves a lattice the valleys themselves
+            // made (`halves_a_yarn`).
+            if valleys().is_some_and(|v| v.half_a_yarn()) && halves_a_yarn(edges_repeat(), k, valley_k) {
                 continue;
             }
             best = (eg.0, eg);
+            valley_k = None;
             continue;
         }
         // Or the boundaries' valleys make a lattice at the candidate that divides the repeat
@@ -492,10 +498,53 @@ fn yarn_pitch(
             let strong_edges = (eg.2 >= MIN_EDGE_CONFIDENCE).then_some(eg);
             if let Some(l) = strong_edges.into_iter().chain([v.grid]).find(|l| divides(l.0)) {
                 best = (l.0, l);
+                valley_k = Some(k);
             }
         }
     }
     best
+}
+
+/// The lags `lo..=hi` at which the profile's autocorrelation must peak for the fraction
+/// `pitch_ac / k` (edge pitch `q`) of the repeat `pitch_ac` to be the yarn pitch (`k` ≥ 2):
+/// ±25 % of `q`, but never past the midpoint between the fraction and the next coarser one,
+/// `pitch_ac / (k − 1)`.
+///
+/// Why: the fractions `pitch_ac / k` crowd together as `k` grows (a 22.2 px repeat: 7.4 px for
+/// 3 yarns, 5.55 px for 4), and `q + 25 %` then reaches the coarser fraction's own lag (6.9 px
+/// rounded up to 7, where the 3 yarns' peak sits). Taking the smallest fraction whose window
+/// holds a peak, the 4-yarn candidate claimed the 3-yarn peak (0.32–0.47 on the seed-2222 random
+/// 3 × 5, whose edge fundamental at 5.55 px, 0.09–0.11, passes the edge floors) and the weft
+/// count came out 4 instead of 3. A peak nearer the coarser fraction is that fraction's
+/// evidence, not this one's. The bound bites from `k = 4` on: for `k` = 2 and 3 the midpoint
+/// (1.5 q and 1.25 q) is at or past +25 %, so there it can only round the upper lag down by one
+/// (no grid of the 84 Mitsuba renders or the 37 real photos of the prep survey changed but
+/// that random 3 × 5's).
+fn fraction_peak_lags(q: f64, pitch_ac: f64, k: usize) -> (usize, usize) {
+    let cand = pitch_ac / k as f64;
+    let coarser = pitch_ac / k.saturating_sub(1).max(1) as f64;
+    let hi = ((1.25 * q).ceil() as usize).min((0.5 * (cand + coarser)).floor() as usize);
+    ((0.75 * q).floor() as usize, hi)
+}
+
+/// Whether a candidate fraction `k` that the valleys call half a yarn (`ValleyRepeat::half_a_yarn`:
+/// they repeat at twice its pitch and not at it) is refused as half a yarn: where the edges do
+/// not repeat at it (`edges_repeat` false: a highlight line along each yarn's crown), or where
+/// it halves the lattice last taken by its valleys (`valley_k == Some(k / 2)`), whatever the edges.
+///
+/// Why the second: the edges repeating at a candidate save it because boundaries can make steps
+/// rather than valleys (flat carbon tows meeting, whose float ends are the only valleys). Where
+/// the coarser lattice at twice the candidate was itself taken *because* its lines are valleys,
+/// the yarn boundaries of this picture do make valleys, so fine lines that are no valleys are no
+/// boundaries, whatever edges the yarns' own shading makes there. The seed-2222 weft rib 2 under
+/// a sky light (warps of 16 px, each a round bump with a crown, and weft floats whose highlight
+/// sits on the gap between the two warps they cross) has its valleys at 16 px (repeat 0.69–0.72,
+/// fundamental 0.31–0.33, taken), while its bumps' and highlights' flanks put edges every 8 px
+/// (fundamental 0.29–0.31, repeat 0.47–0.68) and its log profile peaks there (0.42–0.45): the
+/// 8 px half-yarns were taken and the repeat came out 2 × 8 cells instead of 2 × 4. The valleys
+/// at 8 px repeat at 0.02–0.12 against 0.75–0.78 at 16 px.
+fn halves_a_yarn(edges_repeat: bool, k: usize, valley_k: Option<usize>) -> bool {
+    !edges_repeat || (k.is_multiple_of(2) && valley_k == Some(k / 2))
 }
 
 /// Smallest factor by which the edge lattice may be coarser than the profile's first pitch (the
@@ -952,6 +1001,35 @@ pub fn line_shift_yarns(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Half a yarn by the valleys: refused where the edges do not repeat, and where the candidate
+    /// halves the lattice the valleys made (fraction `k / 2` taken by the valley route), even with
+    /// repeating edges; kept with repeating edges otherwise (steps at the boundaries, no valleys).
+    #[test]
+    fn half_a_valley_lattice_is_refused_whatever_the_edges() {
+        assert!(halves_a_yarn(false, 3, None));
+        assert!(halves_a_yarn(true, 4, Some(2)), "the seed-2222 weft rib: 8 px under a 16 px valley lattice");
+        assert!(!halves_a_yarn(true, 2, None), "carbon tows: repeating edges, no valley lattice");
+        assert!(!halves_a_yarn(true, 4, Some(3)), "not half of the valley lattice");
+        assert!(!halves_a_yarn(true, 3, Some(2)), "an odd fraction halves nothing");
+        assert!(!halves_a_yarn(true, 6, Some(2)), "a third of the valley lattice");
+    }
+
+    /// The 4-yarn fraction of a 22.2 px repeat (5.55 px) may not look for its profile peak at
+    /// the 3-yarn fraction's lag (7.4 px, sampled at 7): the window stops at the midpoint 6.47.
+    /// The 3- and 2-yarn fractions keep their ±25 % windows (up to rounding the upper lag down).
+    #[test]
+    fn a_fraction_does_not_claim_the_coarser_fractions_peak() {
+        let (lo, hi) = fraction_peak_lags(5.55, 22.2, 4);
+        assert_eq!((lo, hi), (4, 6), "4 yarns: {lo}..={hi}");
+        assert!(!(lo..=hi).contains(&7));
+        let (lo, hi) = fraction_peak_lags(7.4, 22.2, 3);
+        assert!((lo..=hi).contains(&7) && (lo, hi) == (5, 9), "3 yarns: {lo}..={hi}");
+        assert_eq!(fraction_peak_lags(11.1, 22.2, 2), (8, 14));
+        // A 64 px repeat over 8 yarns (8 px): 7 yarns' lag (9.14 px) is past the window.
+        let (lo, hi) = fraction_peak_lags(8.0, 64.0, 8);
+        assert_eq!((lo, hi), (6, 8));
+    }
 
     /// A yarn boundary (a dark gap) is a valley, a specular highlight line is a ridge: only the
     /// first counts in `valley_energy`, across either axis, and a dark band wider than `2r` (a
