@@ -339,8 +339,8 @@ pub(crate) fn network_reading(
 /// docs/benchmarks.md, session 23) the every-pixel variants lowered a candidate's warmed-up loss
 /// relative to the leader's by a factor of at most 1.36 (own target 6: a candidate 1.48 times the
 /// best after the yarn-pixel descents ended 1.09 times it, another went from 1.30 to the lead);
-/// 0.75 leaves a candidate that far off out only where the other reading would have to gain
-/// half as much again.
+/// a candidate 1.75 times the best is cut only where the other reading would have to lower its
+/// loss by more than that factor to draw level.
 const EVERY_PIXEL_MARGIN: f32 = 0.75;
 
 /// Warm-up of every shortlisted pattern on `cloth`: radii and plies per yarn change every yarn's
@@ -356,13 +356,15 @@ const EVERY_PIXEL_MARGIN: f32 = 0.75;
 /// candidate's yarn-pixel scan and the descents of its variants first, then, only where its best
 /// descent is within [`EVERY_PIXEL_MARGIN`] of the best of the candidates so far (its own
 /// included), the every-pixel scan and its new variants' descents. Why: the every-pixel scan is
-/// about a third of a candidate's scan records, and a candidate 1.75 times the leader's loss
-/// after the first reading's descents is not brought level by the other reading (the constant
-/// says how far it moved one); cutting it took 10–20 % of the warm-up of the clean renders whose
-/// candidates part clearly (docs/benchmarks.md, session 23). The leader so far, not the
+/// up to a third of a later candidate's scan records, and a candidate 1.75 times the leader's
+/// loss after the first reading's descents is not brought level by the other reading (the
+/// constant says how far it moved one). It cut 8–19 % of the warm-up's re-traces on the own
+/// renders whose first candidate leads by a factor 2 or more, and nothing on the real photos,
+/// whose candidates stay within 1.25 of each other; every `fit.json` of the checks was the same
+/// as without it (docs/benchmarks.md, session 23). The leader so far, not the
 /// shortlist's: comparing with the best of all candidates would keep every candidate's records
-/// until all had been scanned once (2.2 GB instead of a few hundred MB on a 5×5 with seven
-/// candidates), or re-trace them.
+/// until all had been scanned once (a peak of 2.2 GB in the warm-up of a 5×5 with seven
+/// candidates, whose whole fit peaks at 0.6 GB this way), or re-trace them.
 fn warm_up(
     st: &Stage,
     plies: Scan,
