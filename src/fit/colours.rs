@@ -19,7 +19,7 @@ pub(crate) fn pattern_loss(ev: &Evaluator, cand: &mut ClothParams, c: u32) -> f3
 /// current radii, from washing the families out (session 11); but it classes a pixel by its
 /// colour alone, and a translucent yarn lit from behind glows near its edges in a colour close to
 /// the back light's: those pixels are yarn too, and leaving them out darkens the families
-/// (session 15, see `preestimate::shape_variants`).
+/// (session 15, see `preestimate::ScanMemos::scan`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum Reading {
     /// The pixels a yarn covers in both the model and the target ([`yarn_pixels`]).

@@ -345,7 +345,7 @@ impl TraceCounter {
 /// appearance steers the sampling of the recorded paths, `Prepared::record`). A record is a
 /// deterministic function of the cloth and the evaluator's fixed scene, so the answer is the same
 /// bits as a fresh trace. Why: the warm-up's shape scans run the same coordinate search twice, once
-/// per reading of the family colours (`preestimate::shape_variants`), from the same grey start;
+/// per reading of the family colours (`preestimate::ScanMemos::scan`), from the same grey start;
 /// both walk the same radius grid and, where they settle on the same radius, the same ply grid, and
 /// only the colour estimate made from each record differs. Held for one candidate's scans and then
 /// dropped (a record at the fit's pixels per cell is a few MB; a scan traces about 50 states).

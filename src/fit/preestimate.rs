@@ -161,10 +161,7 @@ pub(crate) fn pre_estimate(
     // The twist origins the ply scans find, shared by every candidate's scans (`twist_origin`).
     let origins = TwistMemo::default();
     let twist = opts.twist_origin.then_some(&origins);
-    for p in shortlist {
-        warm.push(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, p, opts.warmup, twist));
-        st.control.progress.advance(1);
-    }
+    warm.extend(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, shortlist, opts.warmup, twist));
     st.control.progress.finish();
     warm.sort_by(|a, b| a.0.total_cmp(&b.0));
     // The leader is chosen by the finish's criterion (`parsimony::PatternChoice`), not the loss
@@ -374,41 +371,98 @@ fn reading_confidence(logits: &[Vec<f32>], p: &WeavePattern) -> f32 {
     least.max(0.0)
 }
 
-/// Warm-up of pattern `p` on `cloth`: radii and plies per yarn change every yarn's silhouette and
-/// shading, enough to hide the pattern's signal, so each candidate gets its own. The scans' loss
-/// (default appearance but the colours; the ply counts on the view `plies`, the radius grids on
-/// the view `radii`, see [`scan_shape`]) does not rank the shape
-/// variants reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations)
-/// of the appearance on the fit's evaluator, and the best one is polished. With `twist` (the
-/// origins found so far), the ply scans try where the twist starts ([`scan_plies`]). Returns the
-/// polished loss and cloth.
+/// Most a candidate's best descent with the yarn-pixel reading may exceed the best candidate's
+/// (as a fraction of it) for the candidate to get the every-pixel reading's scan too
+/// ([`warm_up`]). In the logs of 20 fits (own whole-path targets, Mitsuba scenes, real photos;
+/// docs/benchmarks.md, session 23) the every-pixel variants lowered a candidate's warmed-up loss
+/// relative to the leader's by a factor of at most 1.36 (own target 6: a candidate 1.48 times the
+/// best after the yarn-pixel descents ended 1.09 times it, another went from 1.30 to the lead);
+/// a candidate 1.75 times the best is cut only where the other reading would have to lower its
+/// loss by more than that factor to draw level.
+const EVERY_PIXEL_MARGIN: f32 = 0.75;
+
+/// Warm-up of every shortlisted pattern on `cloth`: radii and plies per yarn change every yarn's
+/// silhouette and shading, enough to hide the pattern's signal, so each candidate gets its own.
+/// The scans' loss (default appearance but the colours; the ply counts on the view `plies`, the
+/// radius grids on the view `radii`, see [`scan_shape`]) does not rank the shape variants
+/// reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations) of the
+/// appearance on the fit's evaluator, and the best one is polished. With `twist` (the origins
+/// found so far), the ply scans try where the twist starts ([`scan_plies`]). Returns the polished
+/// loss and cloth of each pattern, in the shortlist's order.
+///
+/// The scans run with each reading of the family colours ([`ScanMemos::scan`] says why both): a
+/// candidate's yarn-pixel scan and the descents of its variants first, then, only where its best
+/// descent is within [`EVERY_PIXEL_MARGIN`] of the best of the candidates so far (its own
+/// included), the every-pixel scan and its new variants' descents. Why: the every-pixel scan is
+/// up to a third of a later candidate's scan records, and a candidate 1.75 times the leader's
+/// loss after the first reading's descents is not brought level by the other reading (the
+/// constant says how far it moved one). It cut 8–19 % of the warm-up's re-traces on the own
+/// renders whose first candidate leads by a factor 2 or more, and nothing on the real photos,
+/// whose candidates stay within 1.25 of each other; every `fit.json` of the checks was the same
+/// as without it (docs/benchmarks.md, session 23). The leader so far, not the
+/// shortlist's: comparing with the best of all candidates would keep every candidate's records
+/// until all had been scanned once (a peak of 2.2 GB in the warm-up of a 5×5 with seven
+/// candidates, whose whole fit peaks at 0.6 GB this way), or re-trace them.
 fn warm_up(
     st: &Stage,
     plies: Scan,
     radii: Scan,
     cloth: &ClothParams,
-    p: WeavePattern,
+    shortlist: Vec<WeavePattern>,
     iters: usize,
     twist: Option<&TwistMemo>,
-) -> (f32, ClothParams) {
+) -> Vec<(f32, ClothParams)> {
     let (ev, c, stop) = (st.ev, st.render.px_per_cell, &*st.control.stop);
-    let mut cand = cloth.clone();
-    cand.pattern = p;
-    let mut best_radii: Option<(f32, ClothParams)> = None;
-    // The shape variants the scans find with each reading of the family colours (see
-    // `shape_variants`), each with its reading's colour estimate.
-    for (mut v, reading) in shape_variants(plies, radii, &cand, twist, stop) {
-        let cache = estimate_colours(ev, &mut v, c, reading);
-        let l = refine::lm_appearance(ev, &cache, &mut v, iters, stop);
-        if best_radii.as_ref().is_none_or(|b| l < b.0) {
-            best_radii = Some((l, v));
+    // The lowest-loss descent of `variants`, each from its reading's colour estimate, kept in
+    // `best` where lower than what it holds (the first of equals wins, as in the scans).
+    let descend = |variants: Vec<ClothParams>, reading: Reading, best: &mut Option<(f32, ClothParams)>| {
+        for mut v in variants {
+            let cache = estimate_colours(ev, &mut v, c, reading);
+            let l = refine::lm_appearance(ev, &cache, &mut v, iters, stop);
+            if best.as_ref().is_none_or(|b| l < b.0) {
+                *best = Some((l, v));
+            }
+        }
+    };
+    let (mut lead, mut warm) = (f32::INFINITY, Vec::new());
+    for p in shortlist {
+        let cand = ClothParams { pattern: p, ..cloth.clone() };
+        let memos = ScanMemos::new(plies, radii);
+        let found = memos.scan(&cand, Reading::YarnPixels, twist, stop);
+        let mut best = None;
+        descend(found.clone(), Reading::YarnPixels, &mut best);
+        let own = best.as_ref().map(|b: &(f32, ClothParams)| b.0);
+        lead = own.map_or(lead, |l| lead.min(l));
+        if within_every_pixel_margin(own, lead) {
+            let more = memos.scan(&cand, Reading::EveryPixel, twist, stop);
+            descend(new_shapes(more, &found), Reading::EveryPixel, &mut best);
+        }
+        drop(memos);
+        let mut cand = best.map_or(cand, |b| b.1);
+        let l = refine::polish(ev, &mut cand, WARMUP_ROUNDS, iters, stop);
+        warm.push((l, cand));
+        st.control.progress.advance(1);
+    }
+    warm
+}
+
+/// Whether a candidate whose best yarn-pixel descent ended at `own` (`None`: no variant, e.g.
+/// stopped) gets the every-pixel scan, the best so far being `lead` ([`EVERY_PIXEL_MARGIN`]);
+/// a loss that is not a number is not cut.
+fn within_every_pixel_margin(own: Option<f32>, lead: f32) -> bool {
+    own.is_none_or(|l| l.is_nan() || l <= lead * (1.0 + EVERY_PIXEL_MARGIN))
+}
+
+/// The states of `more` whose ply count and radii none of `found` has.
+fn new_shapes(more: Vec<ClothParams>, found: &[ClothParams]) -> Vec<ClothParams> {
+    let mut out: Vec<ClothParams> = Vec::new();
+    for v in more {
+        let shape = (v.n_p, v.r_e, v.r_a);
+        if !found.iter().chain(out.iter()).any(|u| (u.n_p, u.r_e, u.r_a) == shape) {
+            out.push(v);
         }
     }
-    if let Some((_, v)) = best_radii {
-        cand = v;
-    }
-    let l = refine::polish(ev, &mut cand, WARMUP_ROUNDS, iters, stop);
-    (l, cand)
+    out
 }
 
 /// The starts among the warmed-up candidates `warm` (sorted, best first): the leader, and
@@ -448,21 +502,55 @@ impl<'a> ScanMemo<'a> {
 /// radii of the state scanned, the origins kept, for [`twist_origin`].
 type TwistMemo = std::sync::Mutex<Vec<((u32, f32, f32), [f32; 2])>>;
 
-/// The shape variants of [`scan_shape`] with the family colours read over the yarn pixels, then
-/// those it finds with every pixel of the cells read, duplicates removed; each with the reading
-/// that found it, whose colour estimate starts its descent (a yarn-pixel variant starts where it
-/// did before session 15).
-///
-/// The scans are a coordinate search (common radius, then plies, then each family's radius) on
-/// a loss whose colours are estimated anew at every shape, and which reading of the colours the
-/// loss uses moves the common radius it settles on and every step after it. The yarn-pixel
-/// reading (session 11: a target's holes larger than the model's no longer wash the families
-/// out) helps where the target's gaps are back-lit holes, and hurts where the yarns themselves
-/// glow in the back light's colour (translucent yarns lit from behind): there it left out yarn
-/// pixels, the scans settled on 7 plies at a common radius 4.5 and never offered the truth's
-/// 5 plies at 4.2/4.9 to the descent (session 14's one-repeat target 2: 23 dB for 38 dB before
-/// that rule). The scans' loss does not rank the variants reliably anyway (see [`scan_shape`]);
-/// the descent of each does. So both readings' variants are offered to it, and it keeps the best.
+/// The records of one candidate's scans: one memo per view, one for both where the ply counts
+/// and the radius grids share a view (the default), so that a state the radius grid and the ply
+/// pass share is traced once too.
+struct ScanMemos<'a> {
+    plies: ScanMemo<'a>,
+    /// The radius grids' memo where their view is not the ply counts'.
+    radii: Option<ScanMemo<'a>>,
+}
+
+impl<'a> ScanMemos<'a> {
+    /// Empty memos of the views `plies` and `radii`.
+    fn new(plies: Scan<'a>, radii: Scan<'a>) -> Self {
+        let shared = std::ptr::eq(plies.ev, radii.ev) && plies.c == radii.c;
+        ScanMemos {
+            plies: ScanMemo::new(plies.ev, plies.c),
+            radii: (!shared).then(|| ScanMemo::new(radii.ev, radii.c)),
+        }
+    }
+
+    /// The shape variants of [`scan_shape`] from `cloth` with the family colours read over the
+    /// pixels `reading` names.
+    ///
+    /// Both readings' scans start from the same cloth and walk the same grids: the states they
+    /// share are traced once. The scans are a coordinate search (common radius, then plies, then
+    /// each family's radius) on a loss whose colours are estimated anew at every shape, and which
+    /// reading of the colours the loss uses moves the common radius it settles on and every step
+    /// after it. The yarn-pixel reading (session 11: a target's holes larger than the model's no
+    /// longer wash the families out) helps where the target's gaps are back-lit holes, and hurts
+    /// where the yarns themselves glow in the back light's colour (translucent yarns lit from
+    /// behind): there it left out yarn pixels, the scans settled on 7 plies at a common radius 4.5
+    /// and never offered the truth's 5 plies at 4.2/4.9 to the descent (session 14's one-repeat
+    /// target 2: 23 dB for 38 dB before that rule). The scans' loss does not rank the variants
+    /// reliably anyway (see [`scan_shape`]); the descent of each does. So both readings' variants
+    /// are offered to it ([`warm_up`]), and it keeps the best.
+    fn scan(
+        &self,
+        cloth: &ClothParams,
+        reading: Reading,
+        twist: Option<&TwistMemo>,
+        stop: &AtomicBool,
+    ) -> Vec<ClothParams> {
+        scan_shape(&self.plies, self.radii.as_ref().unwrap_or(&self.plies), cloth, reading, twist, stop)
+    }
+}
+
+/// The shape variants of both readings of the family colours ([`ScanMemos::scan`]): the
+/// yarn-pixel reading's, then the every-pixel reading's new ones, each with its reading (what
+/// [`warm_up`] offers a candidate within its margin).
+#[cfg(test)]
 fn shape_variants(
     plies: Scan,
     radii: Scan,
@@ -470,26 +558,11 @@ fn shape_variants(
     twist: Option<&TwistMemo>,
     stop: &AtomicBool,
 ) -> Vec<(ClothParams, Reading)> {
-    // Both scans start from the same cloth and walk the same grids: the states they share are
-    // traced once (`RecordMemo`, one per view; one view for both, the default, is one memo, so a
-    // state the radius grid and the ply pass share is traced once too).
-    let ply_memo = ScanMemo::new(plies.ev, plies.c);
-    let own;
-    let radius_memo = if std::ptr::eq(plies.ev, radii.ev) && plies.c == radii.c {
-        &ply_memo
-    } else {
-        own = ScanMemo::new(radii.ev, radii.c);
-        &own
-    };
-    let scan = |reading: Reading| scan_shape(&ply_memo, radius_memo, cloth, reading, twist, stop);
-    let mut out: Vec<(ClothParams, Reading)> =
-        scan(Reading::YarnPixels).into_iter().map(|v| (v, Reading::YarnPixels)).collect();
-    for v in scan(Reading::EveryPixel) {
-        if !out.iter().any(|(u, _)| (u.n_p, u.r_e, u.r_a) == (v.n_p, v.r_e, v.r_a)) {
-            out.push((v, Reading::EveryPixel));
-        }
-    }
-    out
+    let memos = ScanMemos::new(plies, radii);
+    let found = memos.scan(cloth, Reading::YarnPixels, twist, stop);
+    let more = new_shapes(memos.scan(cloth, Reading::EveryPixel, twist, stop), &found);
+    let tag = |vs: Vec<ClothParams>, r: Reading| vs.into_iter().map(move |v| (v, r));
+    tag(found, Reading::YarnPixels).chain(tag(more, Reading::EveryPixel)).collect()
 }
 
 /// Yarn shape of a candidate pattern by its pattern loss (own colour estimate, the family means
@@ -598,7 +671,7 @@ fn scan_plies(
 /// The warm-up's first scan of `c`'s ply count and common radius tries [`TWIST_SCAN_STEPS`]
 /// origins per family (`shape_extra::scan_ply_origin`) and keeps its answer in `origins`; a
 /// later one at the same ply count and radius (the other reading of the family colours,
-/// [`shape_variants`], where it settled on the same common radius, or another candidate's
+/// [`ScanMemos::scan`], where it settled on the same common radius, or another candidate's
 /// pattern) tries only that answer, against origin 0 with the scan's margin
 /// (`shape_extra::try_ply_origin`).
 ///
@@ -638,6 +711,36 @@ mod tests {
         let mut c = default_cloth(super::super::candidates::default_twill(4, 4));
         c.n_p = n_p;
         (l, c)
+    }
+
+    #[test]
+    fn only_candidates_near_the_leader_get_the_second_reading_scan() {
+        let lead = 1.0e-3;
+        // The leader itself, a close runner-up and one at the margin get it; one 1.8 times the
+        // leader's loss does not.
+        assert!(within_every_pixel_margin(Some(lead), lead));
+        assert!(within_every_pixel_margin(Some(1.3 * lead), lead));
+        assert!(within_every_pixel_margin(Some((1.0 + EVERY_PIXEL_MARGIN) * lead), lead));
+        assert!(!within_every_pixel_margin(Some(1.8 * lead), lead));
+        // No variant (a stopped scan) or a loss that is not a number keeps both scans; the
+        // first candidate is its own lead.
+        assert!(within_every_pixel_margin(None, lead));
+        assert!(within_every_pixel_margin(Some(f32::NAN), lead));
+        assert!(within_every_pixel_margin(Some(5.0), 5.0));
+    }
+
+    #[test]
+    fn new_shapes_drop_those_already_found_and_repeats() {
+        let c = |n_p: u32, r: f32| ClothParams {
+            n_p,
+            r_e: r,
+            r_a: r,
+            ..default_cloth(super::super::candidates::default_twill(3, 3))
+        };
+        let found = vec![c(3, 3.0), c(4, 3.0)];
+        let more = vec![c(4, 3.0), c(5, 3.0), c(5, 3.0), c(3, 3.5)];
+        let got: Vec<(u32, f32)> = new_shapes(more, &found).iter().map(|v| (v.n_p, v.r_e)).collect();
+        assert_eq!(got, vec![(5, 3.0), (3, 3.5)]);
     }
 
     #[test]
