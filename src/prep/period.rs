@@ -182,8 +182,20 @@ pub fn period_from_dmf(
     AxisPeriod { period: period as f32, strength: strength as f32, repeated: true }
 }
 
-/// Periods in x (from rows) and y (from columns) of a grey image. Lags up to 55% of the extent
-/// are searched, so an image needs about two repeats for a repeat to be detected.
+/// Share of an axis's extent up to which lags are searched first: an image needs about two
+/// repeats for a repeat to be detected.
+const SEARCH_SHARE: f64 = 0.55;
+
+/// Share searched on an axis where [`SEARCH_SHARE`] found no repeat: a picture that holds
+/// between 1.6 and 1.8 repeats (a close-up of a plain weave with 64 px yarns, 2 × 1.9 repeats
+/// in a 256 px render, seed-2323 scene 01) otherwise becomes one whole-image "repeat" of 3 × 4
+/// cells. Only as a second try: the longer search also moves the sub-pixel refinement over the
+/// period's multiples, which changed the preparation of about 50 of 133 renders and photos that
+/// already had a period (docs/benchmarks.md, session 23).
+const SECOND_SEARCH_SHARE: f64 = 0.62;
+
+/// Periods in x (from rows) and y (from columns) of a grey image. Lags up to [`SEARCH_SHARE`] of
+/// the extent are searched, then up to [`SECOND_SEARCH_SHARE`] on an axis without a repeat.
 /// `baseline` (x, y) enables the relative test of [`PitchBaseline`].
 pub fn detect_period(
     g: &Gray,
@@ -192,13 +204,20 @@ pub fn detect_period(
     min_corr: f64,
     baseline: [Option<PitchBaseline>; 2],
 ) -> (AxisPeriod, AxisPeriod) {
-    let (dx, vx) = dmf_rows(g, (g.w as f64 * 0.55) as usize);
     let t = g.transposed();
-    let (dy, vy) = dmf_rows(&t, (g.h as f64 * 0.55) as usize);
-    (
-        period_from_dmf(&dx, vx, g.w, min_lag_x, min_corr, baseline[0].as_ref()),
-        period_from_dmf(&dy, vy, g.h, min_lag_y, min_corr, baseline[1].as_ref()),
-    )
+    let axis = |img: &Gray, n: usize, min_lag: f64, base: Option<&PitchBaseline>| {
+        let search = |share: f64| {
+            let (d, v) = dmf_rows(img, (n as f64 * share) as usize);
+            period_from_dmf(&d, v, n, min_lag, min_corr, base)
+        };
+        let first = search(SEARCH_SHARE);
+        if first.repeated {
+            first
+        } else {
+            search(SECOND_SEARCH_SHARE)
+        }
+    };
+    (axis(g, g.w, min_lag_x, baseline[0].as_ref()), axis(&t, g.h, min_lag_y, baseline[1].as_ref()))
 }
 
 /// Relative repeat test: a DMF minimum at lag `d` also counts as a repeat when its correlation
@@ -278,6 +297,18 @@ mod tests {
             let direct = s / (g.h * (g.w - lag)) as f64;
             assert!((d[lag] - direct).abs() < 1e-9, "lag {lag}: {} vs {direct}", d[lag]);
         }
+    }
+
+    #[test]
+    fn a_picture_of_under_two_repeats_is_searched_further() {
+        // 1.7 repeats (period 0.59 of the width): past the first search, found by the second.
+        let g = stripes(200, 8, 118.0);
+        let (px, _) = detect_period(&g, 4.0, 4.0, 0.5, [None, None]);
+        assert!(px.repeated && (px.period - 118.0).abs() < 1.0, "{px:?}");
+        // Two and more repeats: the first search finds it (the second is not run).
+        let g = stripes(300, 8, 118.0);
+        let (px, _) = detect_period(&g, 4.0, 4.0, 0.5, [None, None]);
+        assert!(px.repeated && (px.period - 118.0).abs() < 1.0, "{px:?}");
     }
 
     #[test]
