@@ -194,8 +194,9 @@ const SEARCH_SHARE: f64 = 0.55;
 /// already had a period (docs/benchmarks.md, session 23).
 const SECOND_SEARCH_SHARE: f64 = 0.62;
 
-/// Periods in x (from rows) and y (from columns) of a grey image. Lags up to [`SEARCH_SHARE`] of
-/// the extent are searched, then up to [`SECOND_SEARCH_SHARE`] on an axis without a repeat.
+/// Periods in x (from rows) and y (from columns) of a grey image. Lags up to 55 % of
+/// the extent are searched (`SEARCH_SHARE`), then up to 62 % on an axis without a repeat
+/// (`SECOND_SEARCH_SHARE`).
 /// `baseline` (x, y) enables the relative test of [`PitchBaseline`].
 pub fn detect_period(
     g: &Gray,
