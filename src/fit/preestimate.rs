@@ -123,35 +123,36 @@ pub(crate) fn pre_estimate(
         radius_view = view(rp);
         Scan { ev: &radius_view, c: rp }
     };
-    let shortlist = if st.cells {
-        // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
-        // depends on n_p, n_f and the appearance, which are still at their defaults here.
-        let coarse = pre_ev.sibling(pre_ev.scene().clone(), pre_ev.target().clone(), (cp / 2).max(1));
-        rank_candidates(&coarse, &cloth, cp, opts.shortlist, stop)
+    let network = if st.cells && opts.network {
+        network_pattern(st.ev.target(), (n_e, n_a), opts.model.as_deref(), warnings)?
     } else {
-        vec![cloth.pattern.clone()]
+        None
     };
-    let mut shortlist = shortlist;
-    let mut sure = None;
-    if st.cells && opts.network {
-        if let Some((p, confidence)) = network_pattern(st.ev.target(), (n_e, n_a), opts.model.as_deref(), warnings)? {
-            if confidence >= NET_SURE_LOGIT && cue == Some(&p) {
-                sure = Some(p.clone());
-            }
-            if !shortlist.contains(&p) {
-                shortlist.push(p);
-            }
+    // A sure network reading that the cues agree with is the only candidate (`NET_SURE_LOGIT`),
+    // and the ranking is not run; the twin contest, the sweeps and the finish's rivals still
+    // question it.
+    let sure = network.as_ref().filter(|(p, confidence)| *confidence >= NET_SURE_LOGIT && cue == Some(p));
+    let shortlist = if let Some((p, _)) = sure {
+        vec![p.clone()]
+    } else {
+        let mut shortlist = if st.cells {
+            // Ranked on the cells' coarse colour layout (2×2 blocks per cell): the fine structure
+            // depends on n_p, n_f and the appearance, which are still at their defaults here.
+            let coarse = pre_ev.sibling(pre_ev.scene().clone(), pre_ev.target().clone(), (cp / 2).max(1));
+            rank_candidates(&coarse, &cloth, cp, opts.shortlist, stop)
+        } else {
+            vec![cloth.pattern.clone()]
+        };
+        // The network's reading and the cells read from the photo's structure (`cell_cues`) are
+        // two more candidates.
+        if let Some((p, _)) = network.filter(|(p, _)| !shortlist.contains(p)) {
+            shortlist.push(p);
         }
-    }
-    // The cells read from the photo's structure (`cell_cues`) are one more candidate.
-    if let Some(p) = cue.filter(|p| st.cells && !shortlist.contains(p)) {
-        shortlist.push(p.clone());
-    }
-    // A sure network reading that the cues agree with is the only candidate (`NET_SURE_LOGIT`);
-    // the twin contest, the sweeps and the finish's rivals still question it.
-    if let Some(p) = sure {
-        shortlist = vec![p];
-    }
+        if let Some(p) = cue.filter(|p| st.cells && !shortlist.contains(p)) {
+            shortlist.push(p.clone());
+        }
+        shortlist
+    };
     clock.mark("rank", st.ev, None);
     // Warm-up: every shortlisted pattern gets its shape scans, colour estimate and a polish at
     // the fit's resolution; the best goes on. Candidates are compared only once their appearance

@@ -207,15 +207,15 @@ pub fn detect_period(
 ) -> (AxisPeriod, AxisPeriod) {
     let t = g.transposed();
     let axis = |img: &Gray, n: usize, min_lag: f64, base: Option<&PitchBaseline>| {
-        let search = |share: f64| {
-            let (d, v) = dmf_rows(img, (n as f64 * share) as usize);
-            period_from_dmf(&d, v, n, min_lag, min_corr, base)
-        };
-        let first = search(SEARCH_SHARE);
+        // One DMF to the longer lag serves both searches: its value at a lag does not depend on
+        // how far it runs (the FFT length is set by `n`), so its first lags are the first search's.
+        let (d, v) = dmf_rows(img, (n as f64 * SECOND_SEARCH_SHARE) as usize);
+        let first_len = ((n as f64 * SEARCH_SHARE) as usize).min(n.saturating_sub(1)) + 1;
+        let first = period_from_dmf(&d[..first_len.min(d.len())], v, n, min_lag, min_corr, base);
         if first.repeated {
             first
         } else {
-            search(SECOND_SEARCH_SHARE)
+            period_from_dmf(&d, v, n, min_lag, min_corr, base)
         }
     };
     (axis(g, g.w, min_lag_x, baseline[0].as_ref()), axis(&t, g.h, min_lag_y, baseline[1].as_ref()))
