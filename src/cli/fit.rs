@@ -46,7 +46,7 @@ impl From<ModeArg> for FitMode {
 pub struct FitArgs {
     /// Photo or one-repeat crop (PNG, JPEG or EXR).
     pub image: PathBuf,
-    /// Output folder (fit.json, fit.png, fit_noise.png, compare.png, trace.png, log.jsonl, stages.json,
+    /// Output folder (fit.json, fit.png, fit_noise.png, compare.png, trace.png, log.jsonl, stages.json, cues.json,
     /// prep.json, noise.json, export/). Written beside it first and swapped in when the fit completes, so it only ever
     /// holds a complete fit; a fit stopped early (Ctrl-C) goes to `OUT.partial` instead.
     #[arg(long, default_value = "out/fit")]

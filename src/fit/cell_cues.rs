@@ -45,6 +45,7 @@
 use crate::pattern::WeavePattern;
 use crate::prep::image_ops::{blur_gray, Gray};
 use crate::prep::Prepared;
+use serde::Serialize;
 
 /// Fewest copies of every cell of the repeat that must lie inside the rectified photo for the
 /// cues to be read (with one copy there is no standard error, and one copy's fibres decide).
@@ -465,12 +466,8 @@ fn best_named_reading(cues: &CellCues) -> Option<(WeavePattern, f64)> {
         .min_by(|a, b| a.1.total_cmp(&b.1))
 }
 
-/// Environment variable which, when set, makes `contest` print the patterns, the cue energies
-/// and both losses on stderr.
-pub const TRACE_CUES_VAR: &str = "WOVEN_TRACE_CUES";
-
 /// How the contest of `contest` (the fitted pattern against the reading) ended.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 pub enum Verdict {
     /// No contest: the reading is the fit's pattern, its grid differs, or the cues do not prefer
     /// it by [`MIN_ENERGY_GAIN`].
@@ -488,6 +485,45 @@ pub enum Verdict {
     TookFace,
     /// The loss decided: the fit's pattern stays.
     KeptByLoss,
+}
+
+/// What `contest` weighed and decided: the record a fit keeps (`FitResult::cue_contest`, written
+/// as `cues.json`) so that a wrong pattern can be traced to the cues or to the loss without
+/// re-running the fit.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ContestRecord {
+    /// The fit's pattern before the contest (rows by weft, `woven params` notation).
+    pub fit_pattern: String,
+    /// The reading that met it: the cue reading, or the named weave the cues favour most when the
+    /// reading is irregular and the fit's pattern is named (`None` where no contest ran).
+    pub read_pattern: Option<String>,
+    /// Cue energy of the fit's pattern minus the exhaustive reading's (how much the cues prefer
+    /// their own reading, before a named weave stands in for an irregular one); `None` where the
+    /// grids differ or no energy is finite.
+    pub energy_gain: Option<f64>,
+    /// Whether the face rule (`face_verdict`) held.
+    pub face: bool,
+    /// Loss of the fit's pattern after the contest's short appearance descent.
+    pub loss_fit: Option<f32>,
+    /// Loss of the better variant of the reading after the same descent.
+    pub loss_read: Option<f32>,
+    /// How it ended.
+    pub verdict: Verdict,
+}
+
+impl ContestRecord {
+    /// A record of a contest that stopped before any loss was computed.
+    fn early(fit: &WeavePattern, read: Option<&WeavePattern>, gain: Option<f64>, verdict: Verdict) -> Self {
+        ContestRecord {
+            fit_pattern: fit.to_string(),
+            read_pattern: read.map(|p| p.to_string()),
+            energy_gain: gain.filter(|g| g.is_finite()),
+            face: false,
+            loss_fit: None,
+            loss_read: None,
+            verdict,
+        }
+    }
 }
 
 /// The contest of the fit's winner `cloth` against the cue reading, when the cues prefer their
@@ -517,7 +553,7 @@ pub enum Verdict {
 ///   (zero: not higher) of the winner's. (Where the named-weave rule takes the reading, the better
 ///   of the two variants is what replaces the winner.)
 ///
-/// Returns the cloth kept (polished where a contest ran) and the verdict.
+/// Returns the cloth kept (polished where a contest ran) and the record of the contest.
 pub(crate) fn contest(
     ev: &super::evaluator::Evaluator,
     cues: &CellCues,
@@ -525,16 +561,17 @@ pub(crate) fn contest(
     cloth: &crate::params::ClothParams,
     lm_iters: usize,
     stop: &std::sync::atomic::AtomicBool,
-) -> (crate::params::ClothParams, Verdict) {
+) -> (crate::params::ClothParams, ContestRecord) {
     use crate::pattern::WeaveClass;
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
+    let no_contest = |gain| ContestRecord::early(&cloth.pattern, Some(&reading.pattern), gain, Verdict::NoContest);
     if (n_e, n_a) != (cues.n_e, cues.n_a) || reading.pattern == cloth.pattern {
-        return (cloth.clone(), Verdict::NoContest);
+        return (cloth.clone(), no_contest(None));
     }
     let gain = cues.energy(&labelling(&cloth.pattern, n_e, n_a)) - reading.energy;
     // NaN (no finite energies) starts no contest either.
     if gain.is_nan() || gain < MIN_ENERGY_GAIN {
-        return (cloth.clone(), Verdict::NoContest);
+        return (cloth.clone(), no_contest(Some(gain)));
     }
     let named = |p: &WeavePattern| p.weave_class() != WeaveClass::Other;
     let (fit_named, read_named) = (named(&cloth.pattern), named(&reading.pattern));
@@ -545,7 +582,10 @@ pub(crate) fn contest(
         let fit_energy = cues.energy(&labelling(&cloth.pattern, n_e, n_a));
         match best_named_reading(cues) {
             Some((p, e)) if p != cloth.pattern && fit_energy - e >= MIN_ENERGY_GAIN => p,
-            _ => return (cloth.clone(), Verdict::KeptNamed),
+            _ => {
+                let kept = ContestRecord::early(&cloth.pattern, Some(&reading.pattern), Some(gain), Verdict::KeptNamed);
+                return (cloth.clone(), kept);
+            }
         }
     } else {
         reading.pattern.clone()
@@ -564,29 +604,30 @@ pub(crate) fn contest(
         })
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .expect("two variants");
+    let record = |face, loss_fit: Option<f32>, verdict| ContestRecord {
+        fit_pattern: cloth.pattern.to_string(),
+        read_pattern: Some(read_pattern.to_string()),
+        energy_gain: Some(gain),
+        face,
+        loss_fit: loss_fit.filter(|l| l.is_finite()),
+        loss_read: Some(l_cue).filter(|l| l.is_finite()),
+        verdict,
+    };
     if read_named && !fit_named {
-        return (cue, Verdict::TookNamed);
+        return (cue, record(false, None, Verdict::TookNamed));
     }
     let mut own = cloth.clone();
     let l_own = super::refine::polish(ev, &mut own, 0, lm_iters, stop);
     // The face rule: a named winner and a named reading that are each other's inverted twins,
     // the cues clearly for the reading's face.
     let face = face_verdict(cues, &cloth.pattern, &read_pattern);
-    if std::env::var_os(TRACE_CUES_VAR).is_some() {
-        eprintln!(
-            "cues contest: fit {} read {} gain {gain:.1} face {face} loss own {l_own:.4e} cue {l_cue:.4e} ratio {:.3}",
-            cloth.pattern,
-            read_pattern,
-            l_cue / l_own
-        );
-    }
     if face && l_cue.is_finite() {
-        return (cue, Verdict::TookFace);
+        return (cue, record(face, Some(l_own), Verdict::TookFace));
     }
     if l_cue.is_finite() && l_cue <= l_own * (1.0 + LOSS_TOLERANCE) {
-        (cue, Verdict::TookByLoss)
+        (cue, record(face, Some(l_own), Verdict::TookByLoss))
     } else {
-        (own, Verdict::KeptByLoss)
+        (own, record(face, Some(l_own), Verdict::KeptByLoss))
     }
 }
 
@@ -852,13 +893,13 @@ mod tests {
         // 2 t-units per cell for the twin (an energy gain of 4 per cell): the twin's face is kept.
         let c = cues_for(2.0);
         assert!(face_verdict(&c, &truth.pattern, &twin));
-        let (kept, v) = contest(&ev, &c, &reading(&c), &truth, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) = contest(&ev, &c, &reading(&c), &truth, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::TookFace, &twin));
         // A quarter of that (1 per cell, under FACE_GAIN_PER_CELL): a contest, which the loss
         // decides for the truth.
         let c = cues_for(0.5);
         assert!(!face_verdict(&c, &truth.pattern, &twin));
-        let (kept, v) = contest(&ev, &c, &reading(&c), &truth, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) = contest(&ev, &c, &reading(&c), &truth, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::KeptByLoss, &truth.pattern));
     }
 
@@ -896,11 +937,11 @@ mod tests {
         };
         // A named reading replaces an irregular winner.
         let c = cues_for(&truth.pattern);
-        let (kept, v) = contest(&ev, &c, &reading(&c, &truth.pattern), &wrong, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) = contest(&ev, &c, &reading(&c, &truth.pattern), &wrong, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::TookNamed, &truth.pattern));
         // An irregular reading never replaces a named winner.
         let c = cues_for(&wrong.pattern);
-        let (kept, v) = contest(&ev, &c, &reading(&c, &wrong.pattern), &truth, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) = contest(&ev, &c, &reading(&c, &wrong.pattern), &truth, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::KeptNamed, &truth.pattern));
         // An irregular reading against a *wrong* named winner: the named weave the cues favour
         // most (the truth, one cell from the reading) meets the winner by the loss and wins it.
@@ -909,8 +950,16 @@ mod tests {
         assert_eq!(basket.pattern.weave_class(), WeaveClass::Basket);
         let c = cues_for(&wrong.pattern);
         assert_eq!(best_named_reading(&c).map(|b| b.0), Some(truth.pattern.clone()));
-        let (kept, v) = contest(&ev, &c, &reading(&c, &wrong.pattern), &basket, 4, &stop);
-        assert_eq!((v, &kept.pattern), (Verdict::TookByLoss, &truth.pattern));
+        let (kept, record) = contest(&ev, &c, &reading(&c, &wrong.pattern), &basket, 4, &stop);
+        assert_eq!((record.verdict, &kept.pattern), (Verdict::TookByLoss, &truth.pattern));
+        // The record names what met (the named weave, not the irregular reading) and the losses
+        // that decided: the truth's is not above the basket's.
+        assert_eq!(record.fit_pattern, basket.pattern.to_string());
+        assert_eq!(record.read_pattern, Some(truth.pattern.to_string()));
+        let (l_fit, l_read) = (record.loss_fit.unwrap(), record.loss_read.unwrap());
+        assert!(l_read <= l_fit, "{l_read} > {l_fit}");
+        assert!(record.energy_gain.unwrap() >= MIN_ENERGY_GAIN);
+        assert!(serde_json::to_string(&record).unwrap().contains("\"verdict\":\"TookByLoss\""));
         // Two irregular patterns: the loss decides, and on a clean render a wrong cell costs far
         // more than the tolerance, so the right winner stays against a wrong reading...
         let right = toggled_cell(&truth, 2, 2).expect("a weave");
@@ -918,11 +967,11 @@ mod tests {
         let both = toggled_cell(&right, 0, 1).expect("a weave");
         assert_eq!((right.pattern.weave_class(), both.pattern.weave_class()), (WeaveClass::Other, WeaveClass::Other));
         let c = cues_for(&both.pattern);
-        let (kept, v) = contest(&ev2, &c, &reading(&c, &both.pattern), &right, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) = contest(&ev2, &c, &reading(&c, &both.pattern), &right, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::KeptByLoss, &right.pattern));
         // ... and the right reading replaces a wrong winner.
         let c = cues_for(&right.pattern);
-        let (kept, v) = contest(&ev2, &c, &reading(&c, &right.pattern), &both, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) = contest(&ev2, &c, &reading(&c, &right.pattern), &both, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::TookByLoss, &right.pattern));
         // A winner one cell from the *inverse* of the truth, with the families' colours swapped
         // to match (what the twills W038 and W117 ended at): the reading replaces it with each
@@ -931,7 +980,8 @@ mod tests {
         let near_inverse = toggled_cell(&crate::fit::candidates::inverted_twin(&truth), 1, 1).expect("a weave");
         assert_eq!(near_inverse.pattern.weave_class(), WeaveClass::Other);
         let c = cues_for(&truth.pattern);
-        let (kept, v) = contest(&ev, &c, &reading(&c, &truth.pattern), &near_inverse, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) =
+            contest(&ev, &c, &reading(&c, &truth.pattern), &near_inverse, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::TookNamed, &truth.pattern));
         let d = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum::<f32>();
         let a = &kept.appearance;
@@ -939,7 +989,8 @@ mod tests {
         // Cues that barely prefer their reading start no contest.
         let mut weak = cues_for(&truth.pattern);
         weak.orient.iter_mut().for_each(|o| *o *= 0.05);
-        let (kept, v) = contest(&ev, &weak, &reading(&weak, &truth.pattern), &wrong, 4, &stop);
+        let (kept, ContestRecord { verdict: v, .. }) =
+            contest(&ev, &weak, &reading(&weak, &truth.pattern), &wrong, 4, &stop);
         assert_eq!((v, &kept.pattern), (Verdict::NoContest, &wrong.pattern));
     }
 }

@@ -119,6 +119,9 @@ pub struct FitResult {
     pub prep: Option<crate::prep::Prepared>,
     /// Warnings (e.g. no model).
     pub warnings: Vec<String>,
+    /// The contest of the fitted pattern against the cells read from the picture
+    /// (`cell_cues::contest`), when the cues were read (`cues.json`).
+    pub cue_contest: Option<cell_cues::ContestRecord>,
     /// Seconds: prep, pre-estimation, optimization, total.
     pub timings: [f64; 4],
     /// Per stage: wall and CPU time, re-traces, and the loss of the best state it left
@@ -262,8 +265,11 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let best = joint.runs.first().cloned().unwrap_or_else(|| (f32::INFINITY, pre.initial.clone()));
     stages.mark("joint", &ev, Some(&best.1));
     let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre, &mut stages);
+    let mut cue_contest = None;
     if let Some((c, r)) = cues.as_ref().filter(|_| !joint.stopped) {
-        let (kept, verdict) = cell_cues::contest(&ev, c, r, &cloth, opts.finish.lm_iters, &opts.control.stop);
+        let (kept, record) = cell_cues::contest(&ev, c, r, &cloth, opts.finish.lm_iters, &opts.control.stop);
+        let verdict = record.verdict;
+        cue_contest = Some(record);
         if matches!(
             verdict,
             cell_cues::Verdict::TookNamed | cell_cues::Verdict::TookByLoss | cell_cues::Verdict::TookFace
@@ -396,6 +402,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         stopped: joint.stopped,
         prep: target.prep,
         warnings,
+        cue_contest,
         timings: [t_prep, t_pre, t_opt, clock.elapsed().as_secs_f64()],
         stages: stages.stages,
         retraces: ev.traces().count(),

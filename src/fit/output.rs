@@ -487,7 +487,8 @@ pub struct Written {
 }
 
 /// Write the files of a fit into `dir` (created): `fit.json`, `prep.json` (with preparation),
-/// `log.jsonl`, `stages.json` (`FitResult::stages`), `fit.png`, `fit_sharp.png` (with preparation:
+/// `cues.json` (where the picture's cells met the fit, `FitResult::cue_contest`), `log.jsonl`,
+/// `stages.json` (`FitResult::stages`), `fit.png`, `fit_sharp.png` (with preparation:
 /// [`registered_render_sharp`]), `fit_noise.png` (`fit.png` with `noise` added, when given),
 /// `compare.png`, `trace.png`. Returns the registered renders, the blurred one being
 /// `fit.png` (`None` without preparation).
@@ -501,6 +502,9 @@ pub fn write_outputs(
     res.params.save(&dir.join("fit.json")).with_context(|| format!("writing {}", dir.join("fit.json").display()))?;
     if let Some(p) = &res.prep {
         crate::io::write_atomic(&dir.join("prep.json"), p.to_json().as_bytes())?;
+    }
+    if let Some(c) = &res.cue_contest {
+        crate::io::write_atomic(&dir.join("cues.json"), serde_json::to_string_pretty(c)?.as_bytes())?;
     }
     let mut log = String::new();
     for l in &res.history {
