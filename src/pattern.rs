@@ -256,6 +256,20 @@ impl WeavePattern {
         })
     }
 
+    /// Whether this is a herringbone ([Watson12], "Textile Design and Colour": the point, broken
+    /// and reversed twills): a twill whose diagonal turns back every `r` yarns, `r ≥`
+    /// [`herringbone_min_run`] (3, and about the twill's own repeat). On the minimum repeat, along the wefts (or the warps, transposed): `2r` rows, each
+    /// of the first `r` the previous one moved on by one yarn, each of the next `r` moved back by
+    /// one (`P[k+1][j] = P[k][j ∓ 1]`), the two turns free (where they break the diagonal, a
+    /// broken herringbone; where they mirror it, a pointed one), the twill side (the other
+    /// count) at least 3. Invariant under cyclic shifts, inversion and mirroring.
+    pub fn is_herringbone(&self) -> bool {
+        let p = self.reduced();
+        let transposed: Vec<Vec<bool>> = (0..p.cols).map(|j| (0..p.rows).map(|i| p.get(i, j)).collect()).collect();
+        let rows = p.rows();
+        [rows, transposed].iter().any(|rows| herringbone_rows(rows))
+    }
+
     /// `true` when some weft or warp never changes side: it would float over the whole fabric.
     pub fn has_unbound_yarn(&self) -> bool {
         let weft = (0..self.rows).any(|i| (0..self.cols).all(|j| self.get(i, j) == self.get(i, 0)));
@@ -264,13 +278,48 @@ impl WeavePattern {
     }
 }
 
+/// Shortest run of rows a herringbone's diagonal keeps one direction ([`WeavePattern::is_herringbone`]):
+/// three yarns make a visible diagonal; a turn after every second yarn is a zigzag of short
+/// floats that reads as a broken basket, not a herringbone.
+pub const HERRINGBONE_MIN_RUN: usize = 3;
+
+/// Shortest run `r` of a herringbone on a twill of side `n`: [`HERRINGBONE_MIN_RUN`], and at
+/// least `n − 1` yarns, so that each run shows about one repeat of its twill (the point and
+/// reversed twills of the textbooks). Shorter runs make a figured zigzag; they would also make
+/// thousands of square-grid patterns (a 6-twill turning every 3 yarns) "named", diluting what
+/// naming tells the fit.
+pub fn herringbone_min_run(n: usize) -> usize {
+    HERRINGBONE_MIN_RUN.max(n.saturating_sub(1))
+}
+
+/// Whether `rows` (cyclic, `2r` of them, each of length `n ≥ 3`) is a herringbone along the
+/// rows: from some starting row, `r − 1` steps of the diagonal one way (each row the previous
+/// moved on by one yarn), then `r − 1` steps back, the two turns free.
+fn herringbone_rows(rows: &[Vec<bool>]) -> bool {
+    let (m, n) = (rows.len(), rows.first().map_or(0, Vec::len));
+    if n < 3 || !m.is_multiple_of(2) || m / 2 < herringbone_min_run(n) {
+        return false;
+    }
+    let r = m / 2;
+    // `rows[b]` is `rows[a]` moved on by `d` yarns: `rows[b][j] = rows[a][j − d]`.
+    let moved = |a: usize, b: usize, d: isize| {
+        (0..n).all(|j| rows[b % m][j] == rows[a % m][(j as isize - d).rem_euclid(n as isize) as usize])
+    };
+    (0..m).any(|s| {
+        [1isize, -1]
+            .iter()
+            .any(|&d| (s..s + r - 1).all(|k| moved(k, k + 1, d)) && (s + r..s + 2 * r - 1).all(|k| moved(k, k + 1, -d)))
+    })
+}
+
 /// The weave class of a pattern, as fabric labels name it ([`WeavePattern::weave_class`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum WeaveClass {
     /// Plain (tabby): the 2×2 checker.
     Plain,
-    /// Twill: square repeat of side ≥ 3 whose rows step by ±1 yarn (one diagonal of floats).
+    /// Twill: square repeat of side ≥ 3 whose rows step by ±1 yarn (one diagonal of floats),
+    /// and its herringbones (the diagonal turning back, [`WeavePattern::is_herringbone`]).
     Twill,
     /// Satin (or sateen): square repeat of side ≥ 4 with one binding point per row and per
     /// column that does not step by ±1 (the 4-end crowfoot, steps 1, 2, −1, −2, included).
@@ -330,7 +379,8 @@ impl WeavePattern {
     /// inverted pattern (the back of the cloth), the transposed one ([`WeavePattern::rotated90`])
     /// and the mirrored ones, because every test below is invariant under these.
     ///
-    /// On the minimum repeat (`n × m`): a floating yarn or `n ≠ m` is `Other`; `2 × 2` is plain
+    /// On the minimum repeat (`n × m`): a herringbone ([`WeavePattern::is_herringbone`]) is a
+    /// twill (textbook and fabric labels file it so); a floating yarn or `n ≠ m` is `Other`; `2 × 2` is plain
     /// (the only woven 2×2 is the checker); `2k × 2k` equal to the checker of `k × k` blocks up
     /// to shift and inversion is basket; otherwise, when every row is the previous one shifted
     /// by the same step `s` (`P[i+1][j+s] = P[i][j]`), `s = ±1` with `n ≥ 3` is a twill; a square
@@ -339,6 +389,9 @@ impl WeavePattern {
     pub fn weave_class(&self) -> WeaveClass {
         let p = self.reduced();
         let n = p.rows;
+        if !p.has_unbound_yarn() && p.is_herringbone() {
+            return WeaveClass::Twill;
+        }
         if p.has_unbound_yarn() || n != p.cols {
             return WeaveClass::Other;
         }

@@ -127,13 +127,15 @@ const TWILL_MAX_SIDE: usize = 8;
 
 /// The named weaves that fit an `n_e × n_a` grid, in every cyclic shift, and their backs: the
 /// presets and the ribs and baskets (`candidates::plain_derivatives`), tiled where their repeat
-/// divides the grid, and, on a square grid, every twill and every regular satin of that side
-/// ([`regular_weaves`]).
+/// divides the grid, on a square grid every twill and every regular satin of that side
+/// ([`regular_weaves`]), and on a `2r × n` or `n × 2r` grid every herringbone
+/// ([`herringbone_weaves`]).
 pub(crate) fn named_weaves(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
     let mut seen = std::collections::HashSet::new();
     let mut out = Vec::new();
     let square = if n_e == n_a { regular_weaves(n_e) } else { Vec::new() };
-    for p in template_candidates(n_e, n_a).into_iter().chain(square) {
+    let herringbones = herringbone_weaves(n_e, n_a);
+    for p in template_candidates(n_e, n_a).into_iter().chain(square).chain(herringbones) {
         for q in [p.inverted(), p] {
             if seen.insert(q.clone()) {
                 out.push(q);
@@ -173,6 +175,44 @@ fn regular_weaves(n: usize) -> Vec<WeavePattern> {
     for step in (2..n.saturating_sub(1)).filter(|&s| gcd(s, n) == 1) {
         for c in 0..n {
             out.extend(build(&|i, j| j != (c + i * step) % n));
+        }
+    }
+    out
+}
+
+/// The herringbones of an `n_e × n_a` grid ([Watson12]; `WeavePattern::is_herringbone`): a twill
+/// of side `n` (`3 ≤ n ≤` [`TWILL_MAX_SIDE`], any non-constant first row) whose diagonal turns
+/// back every `r` yarns (`herringbone_min_run(n) ≤ r ≤ TWILL_MAX_SIDE`: never a square grid), along the wefts on a
+/// `2r × n` grid or along the warps on an `n × 2r` one. Row `k < r` is the first row moved on by
+/// `k` yarns, row `r + k` is it moved on by `c − k`; every `c` (where the turn breaks or mirrors
+/// the diagonal) and every cyclic shift of the rows. Why named: a herringbone reading from the
+/// picture is as unlikely from noise as a twill's, and a herringbone cloth (tweed, suiting) is
+/// as common as the satins.
+fn herringbone_weaves(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
+    let mut out = Vec::new();
+    for transposed in [false, true] {
+        let (m, n) = if transposed { (n_a, n_e) } else { (n_e, n_a) };
+        let runs = crate::pattern::herringbone_min_run(n)..=TWILL_MAX_SIDE;
+        if !m.is_multiple_of(2) || !runs.contains(&(m / 2)) || !(3..=TWILL_MAX_SIDE).contains(&n) {
+            continue;
+        }
+        let r = m / 2;
+        for bits in 1..(1u32 << n) - 1 {
+            for c in 0..n {
+                // Along the run `k` of `m` rows, the first row is moved on by `shift(k)` yarns.
+                let shift = |k: usize| if k < r { k } else { c + n * r - (k - r) };
+                let cell = |k: usize, j: usize| bits >> ((j + n * m - shift(k) % n) % n) & 1 == 1;
+                for s in 0..m {
+                    let rows: Vec<Vec<bool>> = (0..n_e)
+                        .map(|i| {
+                            (0..n_a)
+                                .map(|j| if transposed { cell((j + s) % m, i) } else { cell((i + s) % m, j) })
+                                .collect()
+                        })
+                        .collect();
+                    out.extend(WeavePattern::from_rows_unreduced(&rows).ok());
+                }
+            }
         }
     }
     out
@@ -314,6 +354,47 @@ mod tests {
         // With thousands of independent samples (a clean render) 1 % does.
         assert!(bic(0.99, 1, 16, 4000.0) < bic(1.0, 0, 16, 4000.0));
         assert!(bic(0.0, 0, 16, n).is_finite());
+    }
+
+    #[test]
+    fn every_herringbone_is_named_along_either_family_and_a_zigzag_of_two_is_not() {
+        use crate::pattern::WeaveClass;
+        // A 3/1 twill turned back every 4 wefts, mirrored at the turns (a Mitsuba scene's truth),
+        // and a 2/1 twill broken at its turns every 3; shifted, from the back and transposed.
+        for text in ["0100/0010/0001/0001/0010/0100/1000/1000", "110/011/101/011/110/101"] {
+            let p = WeavePattern::parse_unreduced(text).unwrap();
+            assert!(p.is_herringbone(), "{text}");
+            assert_eq!(p.weave_class(), WeaveClass::Twill, "{text}");
+            let (m, n) = (p.n_e(), p.n_a());
+            let named = named_weaves(m, n);
+            assert_eq!(irregular_cells(&p, &named).0, 0, "{text}");
+            assert_eq!(irregular_cells(&p.inverted(), &named).0, 0, "{text} back");
+            let shifted = WeavePattern::from_rows_unreduced(
+                &(0..m).map(|i| (0..n).map(|j| p.get(i + 3, j + 1)).collect()).collect::<Vec<_>>(),
+            )
+            .unwrap();
+            assert_eq!(irregular_cells(&shifted, &named).0, 0, "{text} shifted");
+            let transposed = WeavePattern::from_rows_unreduced(
+                &(0..n).map(|j| (0..m).map(|i| p.get(i, j)).collect()).collect::<Vec<_>>(),
+            )
+            .unwrap();
+            assert!(transposed.is_herringbone(), "{text} transposed");
+            assert_eq!(irregular_cells(&transposed, &named_weaves(n, m)).0, 0, "{text} transposed");
+        }
+        // One cell off a herringbone is irregular; a diagonal that turns every second weft (a
+        // zigzag, shorter than `HERRINGBONE_MIN_RUN`) names nothing on its 4 × 4 grid but what
+        // the twills and baskets already name.
+        let off = WeavePattern::parse_unreduced("0100/0010/0001/0001/0010/0100/1000/1001").unwrap();
+        assert!(!off.is_herringbone());
+        assert_eq!(irregular_cells(&off, &named_weaves(8, 4)).0, 1);
+        let zigzag = WeavePattern::parse_unreduced("1100/0110/1100/1001").unwrap();
+        assert!(!zigzag.is_herringbone());
+        assert_eq!(herringbone_weaves(4, 4), Vec::<WeavePattern>::new());
+        // A 6-twill turning every 3 yarns is a zigzag too: no square grid gains named weaves.
+        assert!((3..=8).all(|n| herringbone_weaves(n, n).is_empty()));
+        assert!(!herringbone_weaves(6, 4).is_empty() && herringbone_weaves(6, 6).is_empty());
+        // A twill is not a herringbone (its diagonal never turns).
+        assert!(!WeavePattern::preset("twill31").unwrap().is_herringbone());
     }
 
     #[test]
