@@ -292,7 +292,7 @@ enum EdgePick {
 
 /// How many times the Radon best's [`edge_lattice_score`] a candidate must reach to replace it with
 /// only half of [`grid::MIN_EDGE_CONFIDENCE`] (see [`clearly_straighter`]).
-pub const FAR_STRAIGHTER: f64 = 4.0;
+const FAR_STRAIGHTER: f64 = 4.0;
 
 /// Whether a candidate angle's boundaries (edge score `score`) are clearly straighter than those
 /// of the Radon best (`base`): `score ≥ 1.5·base` and `score ≥ MIN_EDGE_CONFIDENCE`, or
