@@ -256,7 +256,7 @@ impl WeavePattern {
         })
     }
 
-    /// Whether this is a herringbone ([Watson12], "Textile Design and Colour": the point, broken
+    /// Whether this is a herringbone (Watson, "Textile Design and Colour", docs/bibliography.md: the point, broken
     /// and reversed twills): a twill whose diagonal turns back every `r` yarns, `r ≥`
     /// [`herringbone_min_run`] (3, and about the twill's own repeat). On the minimum repeat, along the wefts (or the warps, transposed): `2r` rows, each
     /// of the first `r` the previous one moved on by one yarn, each of the next `r` moved back by
