@@ -159,7 +159,8 @@ pub(crate) fn pre_estimate(
     // fits: with the grey default, the loss is too flat in the pattern to rank them.
     st.control.progress.begin("pre-estimate", shortlist.len() as u64);
     let mut warm: Vec<(f32, ClothParams)> = Vec::new();
-    // The twist origins the ply scans find, shared by every candidate's scans (`twist_origin`).
+    // The twist origins and ply counts the ply scans find, shared by every candidate's scans
+    // (`twist_origin`, `scan_plies`).
     let origins = TwistMemo::default();
     let twist = opts.twist_origin.then_some(&origins);
     warm.extend(warm_up(st, Scan { ev: scan_ev, c: sp }, radius_ev, &cloth, shortlist, opts.warmup, twist));
@@ -388,7 +389,8 @@ const EVERY_PIXEL_MARGIN: f32 = 0.75;
 /// radius grids on the view `radii`, see [`scan_shape`]) does not rank the shape variants
 /// reliably: each goes through a short descent (`iters` Levenberg–Marquardt iterations) of the
 /// appearance on the fit's evaluator, and the best one is polished. With `twist` (the origins
-/// found so far), the ply scans try where the twist starts ([`scan_plies`]). Returns the polished
+/// and ply counts found so far), the ply scans try where the twist starts and carry the ply
+/// counts of the passes before ([`scan_plies`]). Returns the polished
 /// loss and cloth of each pattern, in the shortlist's order.
 ///
 /// The scans run with each reading of the family colours ([`ScanMemos::scan`] says why both): a
@@ -499,9 +501,24 @@ impl<'a> ScanMemo<'a> {
     }
 }
 
-/// The twist origins the warm-up's ply scans found, over all its candidates: per ply count and
-/// radii of the state scanned, the origins kept, for [`twist_origin`].
-type TwistMemo = std::sync::Mutex<Vec<((u32, f32, f32), [f32; 2])>>;
+/// What the warm-up's ply passes found, over all its candidates (a prepared photo's: the memo
+/// comes with the twist-origin scan, `PreOptions::twist_origin`).
+#[derive(Default)]
+struct TwistMemo {
+    /// Per ply count and radii of the state scanned, the twist origins kept, for
+    /// [`twist_origin`].
+    origins: std::sync::Mutex<Vec<TwistOrigin>>,
+    /// Per common radius and radius of the ply pass, the ply counts that were among the
+    /// [`PLY_CARRY`] lowest losses at that radius in a pass so far, for [`scan_plies`].
+    plies: std::sync::Mutex<Vec<PlyCounts>>,
+}
+
+/// The twist origins kept for a state of the ply pass: its ply count and radii, the origins.
+type TwistOrigin = ((u32, f32, f32), [f32; 2]);
+
+/// The ply counts a later ply pass scans: its common radius and a radius of the pass, the ply
+/// counts.
+type PlyCounts = ((f32, f32), Vec<u32>);
 
 /// The records of one candidate's scans: one memo per view, one for both where the ply counts
 /// and the radius grids share a view (the default), so that a state the radius grid and the ply
@@ -626,12 +643,26 @@ fn scan_shape(
 /// target 4 lost 0.4 dB (docs/benchmarks.md, session 20).
 const TWIST_SCAN_STEPS: usize = 4;
 
+/// Ply counts per radius that a later ply pass of the warm-up at the same common radius scans
+/// ([`scan_plies`]): those among the lowest `PLY_CARRY` losses at that radius in a pass before.
+const PLY_CARRY: usize = 3;
+
 /// One pass over `(n_p, radius)`, the common radius of `cl` and ±0.5, serves both the best `n_p`
-/// at that radius and the best pair. With `twist` (the warm-up's origins so far), each ply
+/// at that radius and the best pair. With `twist` (the warm-up's memo so far), each ply
 /// count of at least two is scored at the common radius with its best twist origin
 /// ([`twist_origin`]): a photo's crop shows its plies' stripes at a phase the model's origin
 /// does not give them, and at that origin the true few plies lose to many fine ones the blur
 /// erases. Returns the two variants of `cl`.
+///
+/// With `twist`, a pass at a common radius that an earlier pass (another candidate's, or the
+/// other reading's) scanned tries at each radius only the ply counts that were among the
+/// [`PLY_CARRY`] lowest losses there in an earlier pass (the union over the passes so far).
+/// Why: which ply counts fit is mostly the crop's property, as where the twist starts is
+/// ([`twist_origin`]); the candidates' patterns move the losses, not much their order. Logged
+/// on whole-path targets 0 and 1 (6 and 7 candidates of 5×5, 12 and 14 passes), no pass's two
+/// picks would have changed with 3 (with 2, one of target 1's), while 87 of 252 and 119 of 294
+/// states were skipped; a later 5×5 candidate's pass cost 21 traces and 6 twist tries before
+/// (docs/benchmarks.md, session 24).
 fn scan_plies(
     ev: &Evaluator,
     cl: &ClothParams,
@@ -641,12 +672,23 @@ fn scan_plies(
 ) -> (ClothParams, ClothParams) {
     let (lo, hi) = RADIUS_RANGE;
     let r0 = cl.r_e;
+    // The ply counts earlier passes at this common radius leave to scan, per radius.
+    let carried: Vec<(f32, Vec<u32>)> = twist
+        .and_then(|m| m.plies.lock().ok())
+        .map(|m| m.iter().filter(|e| e.0 .0 == r0).map(|e| (e.0 .1, e.1.clone())).collect())
+        .unwrap_or_default();
+    let scanned = |n: u32, r: f32| carried.iter().find(|c| c.0 == r).is_none_or(|c| c.1.contains(&n));
     let (mut at_common, mut joint) = (cl.clone(), cl.clone());
     let (mut best_common, mut best_joint): (Option<f32>, Option<f32>) = (None, None);
+    // This pass's losses per radius, for the memo.
+    let mut losses: Vec<(f32, u32, f32)> = Vec::new();
     for n in NP_RANGE.0..=NP_RANGE.1 {
         for r in [r0 - 0.5, r0, r0 + 0.5].into_iter().filter(|r| (lo..=hi).contains(r)) {
             if stop.load(Ordering::Relaxed) {
                 break;
+            }
+            if !scanned(n, r) {
+                continue;
             }
             let mut cand = cl.clone();
             (cand.n_p, cand.r_e, cand.r_a) = (n, r, r);
@@ -663,9 +705,37 @@ fn scan_plies(
             if best_joint.is_none_or(|b| l < b) {
                 (best_joint, joint.n_p, joint.r_e, joint.r_a, joint.shape) = (Some(l), n, r, r, shape);
             }
+            losses.push((r, n, l));
         }
     }
+    if let Some(mut memo) = twist.and_then(|m| m.plies.lock().ok()) {
+        remember_plies(&mut memo, r0, losses);
+    }
     (at_common, joint)
+}
+
+/// Adds to the ply memo `memo` ([`TwistMemo::plies`]) the ply counts of the [`PLY_CARRY`]
+/// lowest of `losses` (radius, ply count, loss) at each radius of a pass at common radius `r0`.
+fn remember_plies(memo: &mut Vec<PlyCounts>, r0: f32, mut losses: Vec<(f32, u32, f32)>) {
+    losses.sort_by(|a, b| a.2.total_cmp(&b.2));
+    let mut radii: Vec<f32> = losses.iter().map(|x| x.0).collect();
+    radii.sort_by(f32::total_cmp);
+    radii.dedup();
+    for r in radii {
+        let best = losses.iter().filter(|x| x.0 == r).take(PLY_CARRY).map(|x| x.1);
+        let k = match memo.iter().position(|e| e.0 == (r0, r)) {
+            Some(k) => k,
+            None => {
+                memo.push(((r0, r), Vec::new()));
+                memo.len() - 1
+            }
+        };
+        for n in best {
+            if !memo[k].1.contains(&n) {
+                memo[k].1.push(n);
+            }
+        }
+    }
 }
 
 /// The twist origin of the ply scan's state `c` (loss `l`), written into `c`; returns its loss.
@@ -691,12 +761,12 @@ fn scan_plies(
 fn twist_origin(origins: &TwistMemo, c: &mut ClothParams, l: f32, loss: impl FnMut(&mut ClothParams) -> f32) -> f32 {
     use super::shape_extra::{scan_ply_origin, try_ply_origin};
     let shape = (c.n_p, c.r_e, c.r_a);
-    let known = origins.lock().ok().and_then(|m| m.iter().find(|o| o.0 == shape).map(|o| o.1));
+    let known = origins.origins.lock().ok().and_then(|m| m.iter().find(|o| o.0 == shape).map(|o| o.1));
     match known {
         Some(origin) => try_ply_origin(c, l, origin, loss),
         None => {
             let l = scan_ply_origin(c, l, TWIST_SCAN_STEPS, loss);
-            if let Ok(mut m) = origins.lock() {
+            if let Ok(mut m) = origins.origins.lock() {
                 m.push((shape, c.shape.ply_origin));
             }
             l
@@ -874,15 +944,44 @@ mod tests {
         let (common, _) = scan_plies(&ev, &start("twill22"), &loss, Some(&memo), &stop);
         assert_eq!(calls.get(), 3 * plies + twisted * 2 * (TWIST_SCAN_STEPS - 1));
         assert!(common.n_p == NP_RANGE.1 && common.shape.ply_origin[0] > 0.0);
-        // Another pattern at the same radius: one try of the known origin per ply count.
+        // Another pattern at the same radius: at each radius only the first pass's `PLY_CARRY`
+        // best ply counts (7, 6, 5 here), with one try of the known origin each at the common
+        // radius.
         calls.set(0);
         let (other, _) = scan_plies(&ev, &start("twill31"), &loss, Some(&memo), &stop);
-        assert_eq!(calls.get(), 3 * plies + twisted);
+        assert_eq!(calls.get(), 3 * PLY_CARRY + PLY_CARRY);
         assert_eq!((other.n_p, other.shape), (common.n_p, common.shape));
+        // Another common radius is scanned in full (its twist origins anew).
+        calls.set(0);
+        let mut moved = start("twill31");
+        (moved.r_e, moved.r_a) = (3.5, 3.5);
+        scan_plies(&ev, &moved, &loss, Some(&memo), &stop);
+        assert_eq!(calls.get(), 3 * plies + twisted * 2 * (TWIST_SCAN_STEPS - 1));
         // Without the memo (a one-repeat input), no origin is tried.
         calls.set(0);
         let (plain, _) = scan_plies(&ev, &start("twill31"), &loss, None, &stop);
         assert_eq!((calls.get(), plain.shape.ply_origin), (3 * plies, [0.0; 2]));
+    }
+
+    #[test]
+    fn the_ply_memo_keeps_the_union_of_each_radius_best_ply_counts() {
+        let mut memo = Vec::new();
+        // Radius 2.5: 5 < 3 < 1 < 7; radius 3: 2 < 4 < 6 < 1 (NaN last).
+        let pass = vec![(2.5, 1, 0.3), (2.5, 3, 0.2), (2.5, 5, 0.1), (2.5, 7, 0.4), (3.0, 1, f32::NAN)];
+        let pass = [pass, vec![(3.0, 2, 0.1), (3.0, 4, 0.2), (3.0, 6, 0.3)]].concat();
+        remember_plies(&mut memo, 3.0, pass);
+        let get = |memo: &[PlyCounts], r: f32| {
+            let mut v = memo.iter().find(|e| e.0 == (3.0, r)).unwrap().1.clone();
+            v.sort_unstable();
+            v
+        };
+        assert_eq!(get(&memo, 2.5), vec![1, 3, 5]);
+        assert_eq!(get(&memo, 3.0), vec![2, 4, 6]);
+        // A later pass adds its own best; another common radius gets its own entries.
+        remember_plies(&mut memo, 3.0, vec![(2.5, 7, 0.1), (2.5, 5, 0.2), (2.5, 3, 0.3), (2.5, 1, 0.4)]);
+        assert_eq!(get(&memo, 2.5), vec![1, 3, 5, 7]);
+        remember_plies(&mut memo, 3.5, vec![(3.5, 2, 0.1)]);
+        assert_eq!(memo.len(), 3);
     }
 
     #[test]
