@@ -264,10 +264,7 @@ impl WeavePattern {
     /// broken herringbone; where they mirror it, a pointed one), the twill side (the other
     /// count) at least 3. Invariant under cyclic shifts, inversion and mirroring.
     pub fn is_herringbone(&self) -> bool {
-        let p = self.reduced();
-        let transposed: Vec<Vec<bool>> = (0..p.cols).map(|j| (0..p.rows).map(|i| p.get(i, j)).collect()).collect();
-        let rows = p.rows();
-        [rows, transposed].iter().any(|rows| herringbone_rows(rows))
+        herringbone_repeat(&self.reduced())
     }
 
     /// `true` when some weft or warp never changes side: it would float over the whole fabric.
@@ -290,6 +287,12 @@ pub const HERRINGBONE_MIN_RUN: usize = 3;
 /// naming tells the fit.
 pub fn herringbone_min_run(n: usize) -> usize {
     HERRINGBONE_MIN_RUN.max(n.saturating_sub(1))
+}
+
+/// [`WeavePattern::is_herringbone`] of a minimum repeat `p`: along its rows or its columns.
+fn herringbone_repeat(p: &WeavePattern) -> bool {
+    let columns: Vec<Vec<bool>> = (0..p.cols).map(|j| (0..p.rows).map(|i| p.get(i, j)).collect()).collect();
+    herringbone_rows(&p.rows()) || herringbone_rows(&columns)
 }
 
 /// Whether `rows` (cyclic, `2r` of them, each of length `n ≥ 3`) is a herringbone along the
@@ -389,10 +392,13 @@ impl WeavePattern {
     pub fn weave_class(&self) -> WeaveClass {
         let p = self.reduced();
         let n = p.rows;
-        if !p.has_unbound_yarn() && p.is_herringbone() {
+        if p.has_unbound_yarn() {
+            return WeaveClass::Other;
+        }
+        if herringbone_repeat(&p) {
             return WeaveClass::Twill;
         }
-        if p.has_unbound_yarn() || n != p.cols {
+        if n != p.cols {
             return WeaveClass::Other;
         }
         if n == 2 {

@@ -495,8 +495,8 @@ pub struct ContestRecord {
     /// The fit's pattern before the contest (rows by weft, `woven params` notation).
     pub fit_pattern: String,
     /// The reading that met it: the cue reading, or the named weave the cues favour most when the
-    /// reading is irregular and the fit's pattern is named (`None` where no contest ran).
-    pub read_pattern: Option<String>,
+    /// reading is irregular and the fit's pattern is named (the cue reading where no contest ran).
+    pub read_pattern: String,
     /// Cue energy of the fit's pattern minus the exhaustive reading's (how much the cues prefer
     /// their own reading, before a named weave stands in for an irregular one); `None` where the
     /// grids differ or no energy is finite.
@@ -512,11 +512,12 @@ pub struct ContestRecord {
 }
 
 impl ContestRecord {
-    /// A record of a contest that stopped before any loss was computed.
-    fn early(fit: &WeavePattern, read: Option<&WeavePattern>, gain: Option<f64>, verdict: Verdict) -> Self {
+    /// The record of `fit` against `read`, without losses (a contest that ended before any was
+    /// computed; the others add theirs).
+    fn new(fit: &WeavePattern, read: &WeavePattern, gain: Option<f64>, verdict: Verdict) -> Self {
         ContestRecord {
             fit_pattern: fit.to_string(),
-            read_pattern: read.map(|p| p.to_string()),
+            read_pattern: read.to_string(),
             energy_gain: gain.filter(|g| g.is_finite()),
             face: false,
             loss_fit: None,
@@ -564,7 +565,7 @@ pub(crate) fn contest(
 ) -> (crate::params::ClothParams, ContestRecord) {
     use crate::pattern::WeaveClass;
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
-    let no_contest = |gain| ContestRecord::early(&cloth.pattern, Some(&reading.pattern), gain, Verdict::NoContest);
+    let no_contest = |gain| ContestRecord::new(&cloth.pattern, &reading.pattern, gain, Verdict::NoContest);
     if (n_e, n_a) != (cues.n_e, cues.n_a) || reading.pattern == cloth.pattern {
         return (cloth.clone(), no_contest(None));
     }
@@ -583,7 +584,7 @@ pub(crate) fn contest(
         match best_named_reading(cues) {
             Some((p, e)) if p != cloth.pattern && fit_energy - e >= MIN_ENERGY_GAIN => p,
             _ => {
-                let kept = ContestRecord::early(&cloth.pattern, Some(&reading.pattern), Some(gain), Verdict::KeptNamed);
+                let kept = ContestRecord::new(&cloth.pattern, &reading.pattern, Some(gain), Verdict::KeptNamed);
                 return (cloth.clone(), kept);
             }
         }
@@ -605,13 +606,10 @@ pub(crate) fn contest(
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .expect("two variants");
     let record = |face, loss_fit: Option<f32>, verdict| ContestRecord {
-        fit_pattern: cloth.pattern.to_string(),
-        read_pattern: Some(read_pattern.to_string()),
-        energy_gain: Some(gain),
         face,
         loss_fit: loss_fit.filter(|l| l.is_finite()),
         loss_read: Some(l_cue).filter(|l| l.is_finite()),
-        verdict,
+        ..ContestRecord::new(&cloth.pattern, &read_pattern, Some(gain), verdict)
     };
     if read_named && !fit_named {
         return (cue, record(false, None, Verdict::TookNamed));
@@ -955,7 +953,7 @@ mod tests {
         // The record names what met (the named weave, not the irregular reading) and the losses
         // that decided: the truth's is not above the basket's.
         assert_eq!(record.fit_pattern, basket.pattern.to_string());
-        assert_eq!(record.read_pattern, Some(truth.pattern.to_string()));
+        assert_eq!(record.read_pattern, truth.pattern.to_string());
         let (l_fit, l_read) = (record.loss_fit.unwrap(), record.loss_read.unwrap());
         assert!(l_read <= l_fit, "{l_read} > {l_fit}");
         assert!(record.energy_gain.unwrap() >= MIN_ENERGY_GAIN);
