@@ -29,6 +29,7 @@ pub mod image_ops;
 pub mod period;
 pub mod rectify;
 pub mod regularize;
+pub mod shear;
 pub mod survey;
 #[cfg(test)]
 pub(crate) mod testutil;
@@ -318,6 +319,7 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
             angle_deg: 0.0,
             homography: crate::math::linalg::IDENTITY,
             perspective_applied: false,
+            shear_deg: 0.0,
         }
     };
     let r = &rect.image;

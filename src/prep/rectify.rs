@@ -33,6 +33,9 @@
 //!    (now affine) yarn directions onto the x and y axes (affine part). The output is cropped to the
 //!    largest axis-aligned rectangle inside the warped image. When too few tiles agree, or the
 //!    implied tilt is implausible (> ~30°), no perspective correction is applied.
+//! 3. **Shear** (`super::shear`). Families crossing at 87° or 93° all over the image have no
+//!    spread for step 2 to correct; their directions are read from the repeat lattice of the
+//!    2-D autocorrelation and the tilted family is sheared onto its axis.
 //!
 //! All transforms are composed into one homography mapping output pixels to input pixels, and
 //! the input is resampled once.
@@ -58,6 +61,9 @@ pub struct Rectified {
     pub homography: Homography,
     /// Whether a perspective correction was applied.
     pub perspective_applied: bool,
+    /// The non-orthogonality of the yarn families sheared out (`shear::deshear`), degrees; 0
+    /// where none was.
+    pub shear_deg: f32,
 }
 
 /// Isotropic 3×3 Laplacian (weights 1,4,1 / 4,−20,4 / 1,4,1, divided by 6); zero on the border.
@@ -585,8 +591,14 @@ pub fn rectify(img: &Rgb32FImage, perspective: bool) -> Rectified {
             }
         }
     }
+    // Families that do not cross at 90° after the rotation: the tilted one is sheared back.
+    let mut shear_deg = 0.0;
+    if let Some((hs, sw, sh, t)) = super::shear::deshear(&warp_gray(&g, &hm, ow, oh), 32) {
+        hm = mat3_mul(&hm, &hs);
+        (ow, oh, shear_deg) = (sw, sh, t.shear_deg() as f32);
+    }
     let image = warp_rgb(img, &hm, ow, oh);
-    Rectified { image, angle_deg: angle as f32, homography: hm, perspective_applied: applied }
+    Rectified { image, angle_deg: angle as f32, homography: hm, perspective_applied: applied, shear_deg }
 }
 
 #[cfg(test)]
