@@ -8,7 +8,8 @@
 //! 1. [`rectify`] — Laplacian + Radon transform → dominant yarn angle, rotation, crop; then a
 //!    RANSAC vanishing-point fit removes slight perspective (§4.1, \[Chaudhury14\]).
 //! 2. A first pitch estimate from the integral projections of the rectified image ([`grid`]); its
-//!    autocorrelation is the *periodicity strength* that rejects images without yarns.
+//!    autocorrelation is the *periodicity strength* that rejects images without yarns; a pitch
+//!    about half the other axis's whose fine lines the cells pair is doubled ([`halved_pitch`]).
 //! 3. Gaussian blur with σ = pitch/16 ([`regularize`]).
 //! 4. [`period`] — superposed distance matching functions of all rows / columns → the
 //!    minimum pattern size in pixels (§4.3, \[Asha12\]).
@@ -25,6 +26,7 @@ pub mod colour_repeat;
 pub mod drift;
 pub mod finer_yarns;
 pub mod grid;
+pub mod halved_pitch;
 pub mod image_ops;
 pub mod period;
 pub mod rectify;
@@ -404,6 +406,22 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
             } else {
                 ay0 = fixed;
             }
+        }
+    }
+    // A pitch that is half the yarns (each yarn cut in two: its halves, or its body and the gap
+    // beside it): the finer axis, where it is about half the other, is doubled where the cells'
+    // orientations pair its fine lines (`halved_pitch`).
+    let fine_x = ax0.pitch < ay0.pitch;
+    let doubled = if fine_x {
+        halved_pitch::doubled(&gb, &ax0, &ay0, true)
+    } else {
+        halved_pitch::doubled(&gb, &ay0, &ax0, false)
+    };
+    if let Some(a) = doubled {
+        if fine_x {
+            ax0 = a;
+        } else {
+            ay0 = a;
         }
     }
     // 3. Blur, σ = pitch / 16.

@@ -1,0 +1,156 @@
+//! Whether the yarn pitch found along one axis is half the yarns' pitch, and the grid of the
+//! yarns when it is.
+//!
+//! [`super::grid::analyze_axis`] takes the smallest whole fraction of the profile's repeat at
+//! which the edges and the profile repeat. Yarns narrower than their spacing, with a gap as wide
+//! as a yarn between them (and a back light shining through the gaps), or a yarn whose crown
+//! carries a highlight line, make edges and profile peaks at half the yarn pitch as regularly as
+//! at the pitch: the seed-2424 basket 3 × 3 (yarns of 10.7 px) read as warps of 5.3 px, a 6 × 12
+//! grid (the fit took 650 s and came back wrong), and the seed-1818 herringbone 2/1 (wefts of
+//! 9.4 px) read as wefts of 4.7 px, a 6 × 12 grid for a 3 × 12 repeat (1536 s, wrong).
+//!
+//! What tells the readings apart is the *cells* (`cells::cell_matrix`'s orientation `o`, which
+//! family is on top). Read at the yarns' own pitch, any weave looks alike from every yarn to the
+//! next: the pairs of neighbouring lines that start on an even line correlate as those starting
+//! on an odd one (a plain's all anti-correlate, a twill's or satin's neighbours are all shifted
+//! alike). Read at half the pitch, the fine lines come in pairs that belong to one yarn — its two
+//! halves, alike, or its body and the gap beside it, whose `o` follows the yarn's — so the two
+//! classes of pairs correlate differently. The spread of the two classes is the sign, looked at
+//! only where the fine axis's pitch is about half the other's: the two families' yarn pitches
+//! rarely differ by two (0.77–1.33 over the 100 Mitsuba renders), while halving one of them
+//! makes exactly that ratio.
+//!
+//! A weave whose own yarns work in pairs along the fine axis (a 2 × 2 basket or an oxford with
+//! warps half as far apart as its wefts) spreads the classes as much; such a cloth is read with
+//! each pair as one yarn (the error this check can make).
+
+use super::cells::{cell_matrix, pearson};
+use super::grid::AxisGrid;
+use super::image_ops::Gray;
+
+/// Range of `other pitch / fine pitch` in which the fine axis is examined: half the other
+/// family's pitch, within the spread of the two families' spacings in a cloth.
+pub const HALF_RATIO: std::ops::RangeInclusive<f64> = 1.7..=2.35;
+
+/// Smallest spread of the two classes' orientation correlations (pairs of neighbouring fine
+/// lines starting on an even line against those starting on an odd one), the largest over the
+/// phases, for the fine lines to be parts of yarns. Halves 0.60 (seed-2424 basket 3) and 1.14
+/// (seed-1818 herringbone); yarns of their own whose pitch is about half the other family's
+/// (FabricNET plains W078 and W081, satins W098 and W099) 0.12–0.30.
+pub const MIN_CLASS_SPREAD: f64 = 0.45;
+
+/// Correlations of the orientations of neighbouring fine lines, pairs starting on an even line
+/// and pairs starting on an odd line, for the lattice `pitch`/`phase` (x, y) fine along
+/// `axis_x`; `None` where fewer than 4 cells fit either way or a class has no variance.
+fn class_corrs(g: &Gray, pitch: [f64; 2], phase: [f64; 2], axis_x: bool) -> Option<[f64; 2]> {
+    let m = cell_matrix(g, pitch, phase)?;
+    let (lines, len) = if axis_x { (m.cols, m.rows) } else { (m.rows, m.cols) };
+    let o = |l: usize, i: usize| if axis_x { m.o[i * m.cols + l] } else { m.o[l * m.cols + i] };
+    let class = |j: usize| {
+        let pairs: Vec<(f64, f64)> =
+            (j..lines - 1).step_by(2).flat_map(|l| (0..len).map(move |i| (o(l, i), o(l + 1, i)))).collect();
+        pearson(&pairs)
+    };
+    Some([class(0)?, class(1)?])
+}
+
+/// Mean `|o|` of the cells of the lattice `pitch`/`phase`: how cleanly its cells show one family
+/// on top. Cells centred on the crossings hold one yarn on top each; cells straddling a boundary
+/// mix the two orientations and cancel.
+fn cell_clarity(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<f64> {
+    let m = cell_matrix(g, pitch, phase)?;
+    Some(m.o.iter().map(|v| v.abs()).sum::<f64>() / m.o.len().max(1) as f64)
+}
+
+/// The grid of the yarns along `axis_x` when `fine` (the grid found along it) is half of them
+/// (the module docs): twice its pitch, at the phase whose cells show the families on top most
+/// cleanly ([`cell_clarity`], scanned over the new pitch in 1-px steps). `None` when `fine` holds
+/// yarns of its own. `other` is the grid across.
+pub fn doubled(g: &Gray, fine: &AxisGrid, other: &AxisGrid, axis_x: bool) -> Option<AxisGrid> {
+    let (q, op, oph) = (fine.pitch as f64, other.pitch as f64, other.phase as f64);
+    if !HALF_RATIO.contains(&(op / q)) || q < 4.0 {
+        return None;
+    }
+    let lattice = |p: f64, ph: f64| if axis_x { ([p, op], [ph, oph]) } else { ([op, p], [oph, ph]) };
+    // The spread at every phase over one fine pitch (1-px steps), the largest: a yarn cut into
+    // its two halves pairs them, a yarn cut into its body and the boundary beside it pairs those,
+    // and which of the two the grid's phase gives depends on the picture.
+    let steps = q.ceil() as usize;
+    let spread = (0..steps)
+        .filter_map(|t| {
+            let (pitch, phase) = lattice(q, fine.phase as f64 + t as f64 * q / steps as f64);
+            class_corrs(g, pitch, phase, axis_x).map(|[c0, c1]| (c0 - c1).abs())
+        })
+        .fold(f64::MIN, f64::max);
+    if spread < MIN_CLASS_SPREAD {
+        return None;
+    }
+    let p = 2.0 * q;
+    let steps = p.ceil() as usize;
+    let mut best: Option<(f64, f64)> = None;
+    for t in 0..steps {
+        let ph = fine.phase as f64 + t as f64 * p / steps as f64;
+        let (pitch, phase) = lattice(p, ph);
+        if let Some(c) = cell_clarity(g, pitch, phase) {
+            if best.is_none_or(|b| c > b.1) {
+                best = Some((ph, c));
+            }
+        }
+    }
+    let (ph, _) = best?;
+    Some(AxisGrid { pitch: p as f32, phase: ph.rem_euclid(p) as f32, ..fine.clone() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::prep::testutil::{plain, render, render_flat, satin5, twill22};
+
+    /// A 3 × 3 basket (groups of three yarns) in `testutil`'s convention.
+    fn basket3() -> Vec<Vec<u8>> {
+        let row = |a: u8| (0..6).map(|j| if j < 3 { a } else { 1 - a }).collect::<Vec<u8>>();
+        (0..6).map(|i| row(u8::from(i < 3))).collect()
+    }
+
+    fn grid(pitch: f64, phase: f64) -> AxisGrid {
+        AxisGrid { pitch: pitch as f32, phase: phase as f32, strength: 1.0, valleys: Vec::new() }
+    }
+
+    #[test]
+    fn yarns_read_at_half_their_pitch_are_doubled_onto_their_boundaries() {
+        // Yarns of 12 px read at 6 px along either axis: the fine lines come in the two halves of
+        // each yarn, the grid returned is the yarns' (12 px, boundaries on multiples of 12).
+        for (name, p) in [("basket 3", basket3()), ("twill 2/2", twill22()), ("satin 5", satin5())] {
+            let g = Gray::from_rgb(&render_flat(&p, 12.0, 240, 240));
+            for axis_x in [true, false] {
+                for start in [0.0, 3.0] {
+                    let got = doubled(&g, &grid(6.0, start), &grid(12.0, 0.0), axis_x)
+                        .unwrap_or_else(|| panic!("{name}, axis_x {axis_x}, start {start}: not doubled"));
+                    assert!((got.pitch - 12.0).abs() < 1e-4, "{name}: pitch {}", got.pitch);
+                    let off = (got.phase as f64).rem_euclid(12.0);
+                    assert!(off.min(12.0 - off) <= 2.0, "{name}, axis_x {axis_x}, start {start}: phase {off}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn yarns_half_as_far_apart_as_the_other_family_are_kept() {
+        // Warps of 6 px under wefts of 12 px: yarns of their own, for a plain, a twill and a satin,
+        // whatever the phase the grid was read at.
+        for (name, p) in [("plain", plain()), ("twill 2/2", twill22()), ("satin 5", satin5())] {
+            let g = Gray::from_rgb(&render(&p, 12.0, 240, 240, |x, y| (2.0 * x, y)));
+            for start in [0.0, 3.0] {
+                let got = doubled(&g, &grid(6.0, start), &grid(12.0, 0.0), true);
+                assert!(got.is_none(), "{name}, start {start}: doubled to {:?}", got.map(|a| (a.pitch, a.phase)));
+            }
+        }
+    }
+
+    #[test]
+    fn only_an_axis_about_half_the_other_is_examined() {
+        // The halves of a basket's yarns, but the other axis read at the same fine pitch.
+        let g = Gray::from_rgb(&render_flat(&basket3(), 12.0, 240, 240));
+        assert!(doubled(&g, &grid(6.0, 0.0), &grid(6.0, 0.0), true).is_none());
+    }
+}
