@@ -200,6 +200,24 @@ impl CellMatrix {
         pearson(&pairs)
     }
 
+    /// Pearson correlations of the neighbouring lines along x (`axis_x`: columns) or y (rows),
+    /// over the pairs starting on an even line and over those starting on an odd line; each
+    /// `None` where it has no pair or no variance. Lines that are each one yarn correlate alike
+    /// both ways; half-yarns pair up within their yarn, so the two differ (`finer_yarns`,
+    /// `halved_pitch`).
+    pub fn pair_corrs(&self, axis_x: bool) -> [Option<f64>; 2] {
+        let (lines, len) = if axis_x { (self.cols, self.rows) } else { (self.rows, self.cols) };
+        let o = |l: usize, i: usize| if axis_x { self.o[i * self.cols + l] } else { self.o[l * self.cols + i] };
+        let class = |j: usize| {
+            let pairs: Vec<(f64, f64)> = (j..lines.saturating_sub(1))
+                .step_by(2)
+                .flat_map(|l| (0..len).map(move |i| (o(l, i), o(l + 1, i))))
+                .collect();
+            pearson(&pairs)
+        };
+        [class(0), class(1)]
+    }
+
     /// The correlations `(n, c(n))` of the shifts up to `max_n` along x (`axis_x`) or y.
     fn shift_corrs(&self, axis_x: bool, max_n: usize) -> Vec<(usize, f64)> {
         // Shifts beyond the matrix have no overlap (and `max_n` may be unbounded).

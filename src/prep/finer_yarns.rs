@@ -26,7 +26,7 @@
 
 use image::Rgb32FImage;
 
-use super::cells::{cell_matrix, cells_along, pearson, MIN_PARTIAL_CORR};
+use super::cells::{cell_matrix, cells_along, MIN_PARTIAL_CORR};
 use super::image_ops::Gray;
 
 /// Largest spread of the orientation correlations of the two classes of neighbouring fine lines
@@ -91,13 +91,8 @@ fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
 fn read_at(img: &Rgb32FImage, g: &Gray, pitch: [f64; 2], phase: [f64; 2], axis_x: bool, n: usize) -> Option<Reading> {
     let m = cell_matrix(g, pitch, phase)?;
     let (lines, len) = if axis_x { (m.cols, m.rows) } else { (m.rows, m.cols) };
-    let o = |l: usize, i: usize| if axis_x { m.o[i * m.cols + l] } else { m.o[l * m.cols + i] };
-    let class = |j: usize| {
-        let pairs: Vec<(f64, f64)> =
-            (j..lines - 1).step_by(2).flat_map(|l| (0..len).map(move |i| (o(l, i), o(l + 1, i)))).collect();
-        pearson(&pairs).unwrap_or(0.0)
-    };
-    let orientation_spread = (class(0) - class(1)).abs();
+    let [even, odd] = m.pair_corrs(axis_x);
+    let orientation_spread = (even.unwrap_or(0.0) - odd.unwrap_or(0.0)).abs();
     let repeat_corr = m.shift_corr(axis_x, n).unwrap_or(f64::MIN);
     // Colours over the same cells (the cell matrix's inset: a fifth of the pitch a side).
     let (w, h) = (g.w, g.h);

@@ -24,7 +24,7 @@
 //! warps half as far apart as its wefts) spreads the classes as much; such a cloth is read with
 //! each pair as one yarn (the error this check can make).
 
-use super::cells::{cell_matrix, pearson};
+use super::cells::cell_matrix;
 use super::grid::AxisGrid;
 use super::image_ops::Gray;
 
@@ -43,15 +43,8 @@ pub const MIN_CLASS_SPREAD: f64 = 0.45;
 /// and pairs starting on an odd line, for the lattice `pitch`/`phase` (x, y) fine along
 /// `axis_x`; `None` where fewer than 4 cells fit either way or a class has no variance.
 fn class_corrs(g: &Gray, pitch: [f64; 2], phase: [f64; 2], axis_x: bool) -> Option<[f64; 2]> {
-    let m = cell_matrix(g, pitch, phase)?;
-    let (lines, len) = if axis_x { (m.cols, m.rows) } else { (m.rows, m.cols) };
-    let o = |l: usize, i: usize| if axis_x { m.o[i * m.cols + l] } else { m.o[l * m.cols + i] };
-    let class = |j: usize| {
-        let pairs: Vec<(f64, f64)> =
-            (j..lines - 1).step_by(2).flat_map(|l| (0..len).map(move |i| (o(l, i), o(l + 1, i)))).collect();
-        pearson(&pairs)
-    };
-    Some([class(0)?, class(1)?])
+    let [even, odd] = cell_matrix(g, pitch, phase)?.pair_corrs(axis_x);
+    Some([even?, odd?])
 }
 
 /// Mean `|o|` of the cells of the lattice `pitch`/`phase`: how cleanly its cells show one family
@@ -64,7 +57,7 @@ fn cell_clarity(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<f64> {
 
 /// The grid of the yarns along `axis_x` when `fine` (the grid found along it) is half of them
 /// (the module docs): twice its pitch, at the phase whose cells show the families on top most
-/// cleanly ([`cell_clarity`], scanned over the new pitch in 1-px steps). `None` when `fine` holds
+/// cleanly (`cell_clarity`, scanned over the new pitch in 1-px steps). `None` when `fine` holds
 /// yarns of its own. `other` is the grid across.
 pub fn doubled(g: &Gray, fine: &AxisGrid, other: &AxisGrid, axis_x: bool) -> Option<AxisGrid> {
     let (q, op, oph) = (fine.pitch as f64, other.pitch as f64, other.phase as f64);
