@@ -35,6 +35,7 @@
 //! and each scaled to exactly its residual variance.
 
 use crate::image_io::Image;
+use crate::math::fft::{fft2, hann};
 use crate::math::lm::{self, LmOptions, LmProblem};
 use rand::prelude::*;
 use rustfft::num_complex::Complex;
@@ -189,29 +190,6 @@ fn signed(k: usize, n: usize) -> f64 {
     } else {
         k as f64
     }
-}
-
-/// In-place 2D FFT of a row-major `w×h` buffer (unnormalised both ways).
-fn fft2(buf: &mut [Complex<f64>], w: usize, h: usize, inverse: bool, planner: &mut FftPlanner<f64>) {
-    let plan = |p: &mut FftPlanner<f64>, n| if inverse { p.plan_fft_inverse(n) } else { p.plan_fft_forward(n) };
-    plan(planner, w).process(buf);
-    let mut t = vec![Complex::new(0.0, 0.0); w * h];
-    for y in 0..h {
-        for x in 0..w {
-            t[x * h + y] = buf[y * w + x];
-        }
-    }
-    plan(planner, h).process(&mut t);
-    for y in 0..h {
-        for x in 0..w {
-            buf[y * w + x] = t[x * h + y];
-        }
-    }
-}
-
-/// Hann window sample `i` of `n` (never exactly zero).
-fn hann(i: usize, n: usize) -> f64 {
-    0.5 - 0.5 * (TAU * (i as f64 + 0.5) / n as f64).cos()
 }
 
 /// Variance (cycles/pixel)² of the Hann window's power spectrum main lobe for patch side `p`.

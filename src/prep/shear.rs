@@ -35,10 +35,10 @@
 //! than the registration of the repeats (`regularize`) takes up, and the peak position of a short
 //! vector is not that precise.
 
-use rayon::prelude::*;
 use rustfft::{num_complex::Complex, FftPlanner};
 
 use super::image_ops::{blur_gray, parabola_offset, Gray};
+use crate::math::fft::{fft2, hann};
 use crate::math::linalg::Homography;
 
 /// The widest tilt of a yarn family from its axis that is looked for, degrees.
@@ -113,33 +113,9 @@ fn box_average(g: &Gray, k: usize) -> Gray {
     out
 }
 
-/// In-place 2-D FFT of a row-major `nx × ny` buffer (rows, then columns).
-fn fft2(buf: &mut [Complex<f64>], nx: usize, ny: usize, inverse: bool) {
-    let mut planner = FftPlanner::<f64>::new();
-    let (fx, fy) = if inverse {
-        (planner.plan_fft_inverse(nx), planner.plan_fft_inverse(ny))
-    } else {
-        (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny))
-    };
-    buf.par_chunks_mut(nx).for_each(|row| fx.process(row));
-    let cols: Vec<Vec<Complex<f64>>> = (0..nx)
-        .into_par_iter()
-        .map(|x| {
-            let mut c: Vec<Complex<f64>> = (0..ny).map(|y| buf[y * nx + x]).collect();
-            fy.process(&mut c);
-            c
-        })
-        .collect();
-    for (x, c) in cols.iter().enumerate() {
-        for (y, v) in c.iter().enumerate() {
-            buf[y * nx + x] = *v;
-        }
-    }
-}
-
 /// The autocorrelation of a Hann window of `n` samples at lags `0..n`.
 fn window_autocorrelation(n: usize) -> Vec<f64> {
-    let w: Vec<f64> = (0..n).map(|i| 0.5 - 0.5 * (std::f64::consts::TAU * (i as f64 + 0.5) / n as f64).cos()).collect();
+    let w: Vec<f64> = (0..n).map(|i| hann(i, n)).collect();
     (0..n).map(|d| (0..n - d).map(|i| w[i] * w[i + d]).sum()).collect()
 }
 
@@ -151,7 +127,6 @@ fn autocorrelation(g: &Gray) -> impl Fn(i64, i64) -> f64 {
     let light = blur_gray(g, (w.max(h) as f32 / 16.0).max(2.0));
     let flat: Vec<f64> = g.data.iter().zip(&light.data).map(|(&v, &l)| (v / l.max(1e-4)) as f64 - 1.0).collect();
     let mean = flat.iter().sum::<f64>() / flat.len() as f64;
-    let hann = |i: usize, n: usize| 0.5 - 0.5 * (std::f64::consts::TAU * (i as f64 + 0.5) / n as f64).cos();
     let (nx, ny) = ((2 * w).next_power_of_two(), (2 * h).next_power_of_two());
     let mut buf = vec![Complex::new(0.0, 0.0); nx * ny];
     for y in 0..h {
@@ -159,9 +134,10 @@ fn autocorrelation(g: &Gray) -> impl Fn(i64, i64) -> f64 {
             buf[y * nx + x] = Complex::new((flat[y * w + x] - mean) * hann(x, w) * hann(y, h), 0.0);
         }
     }
-    fft2(&mut buf, nx, ny, false);
+    let mut planner = FftPlanner::new();
+    fft2(&mut buf, nx, ny, false, &mut planner);
     buf.iter_mut().for_each(|c| *c = Complex::new(c.norm_sqr(), 0.0));
-    fft2(&mut buf, nx, ny, true);
+    fft2(&mut buf, nx, ny, true, &mut planner);
     let (ax, ay) = (window_autocorrelation(w), window_autocorrelation(h));
     let zero = buf[0].re.max(1e-300);
     move |dx: i64, dy: i64| {
