@@ -734,17 +734,9 @@ fn normalise(mut v: Vec<f64>) -> Vec<f64> {
 mod tests {
     use super::*;
 
+    /// The transform's round trip is `math::fft`'s test.
     #[test]
-    fn fft_round_trip_and_window_spread() {
-        let (w, h) = (12, 10);
-        let orig: Vec<Complex<f64>> = (0..w * h).map(|i| Complex::new((i as f64 * 0.37).sin(), 0.0)).collect();
-        let mut b = orig.clone();
-        let mut pl = FftPlanner::new();
-        fft2(&mut b, w, h, false, &mut pl);
-        fft2(&mut b, w, h, true, &mut pl);
-        for (a, c) in orig.iter().zip(&b) {
-            assert!((a - c / (w * h) as f64).norm() < 1e-9);
-        }
+    fn the_window_spectrum_spreads_about_one_bin() {
         let s = window_spread(64).sqrt() * 64.0;
         assert!(s > 0.3 && s < 1.5, "Hann spread {s} bins");
     }
