@@ -32,6 +32,7 @@ pub mod period;
 pub mod rectify;
 pub mod regularize;
 pub mod shear;
+pub mod short_repeat;
 pub mod survey;
 #[cfg(test)]
 pub(crate) mod testutil;
@@ -486,6 +487,34 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
                 // whole repeat in view (`cells::CellMatrix::step_repeat`).
                 let found = m.square_repeat(axis_x, n).map(|c| (n, c)).or_else(|| m.step_repeat(axis_x, n));
                 if let Some((n, c)) = found {
+                    *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
+                    n_cells[k] = Some(n);
+                }
+            }
+        }
+    }
+    // 4c'. An axis seen less than 1.5 repeats whose lines are not shifted copies (a basket, a
+    //      rib), with no repeat or a pixel repeat the cells contradict: the other axis's repeat
+    //      taken where its few lines of overlap are a copy and no shorter period fits the lines
+    //      in view (`short_repeat`).
+    if let Some(m) = &cm {
+        let confirmed = |axis_x: bool, per: &period::AxisPeriod, a: &AxisGrid, k: usize| -> Option<usize> {
+            if let Some(n) = n_cells[k] {
+                return Some(n);
+            }
+            let n = (per.period / a.pitch).round() as usize;
+            (per.repeated && m.shift_corr(axis_x, n).is_some_and(|c| c >= cells::MIN_CELL_CORR)).then_some(n)
+        };
+        let (nx, ny) = (confirmed(true, &per_x, &ax0, 0), confirmed(false, &per_y, &ay0, 1));
+        for (k, (axis_x, per, a, n_other)) in
+            [(true, &mut per_x, &ax0, ny), (false, &mut per_y, &ay0, nx)].into_iter().enumerate()
+        {
+            let own = if k == 0 { nx } else { ny };
+            if own.is_some() {
+                continue;
+            }
+            if let Some(n) = n_other {
+                if let Some(c) = short_repeat::square_over_few_lines(m, axis_x, n) {
                     *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
                     n_cells[k] = Some(n);
                 }
@@ -1147,6 +1176,24 @@ mod tests {
         // The rectified centre lies near the photo's centre (the window is centred).
         let (x, y) = crate::math::linalg::apply(&pr.homography, u, w);
         assert!((x - 1100.0).abs() < 40.0 && (y - 700.0).abs() < 40.0, "centre at ({x}, {y}): {j}");
+    }
+
+    #[test]
+    fn a_basket_seen_once_and_a_quarter_along_its_wider_wefts_gets_the_warps_repeat() {
+        // A 3 × 3 basket (6 × 6 cells) with wefts 1.27× the warps' spacing apart (21.3 and 27.1
+        // px, the seed-2525 scene 11 layout): 10.6 columns, 8.3 rows of cells in view. Along x
+        // the repeat is seen 1.8 times; along y only the other axis's repeat explains the rows.
+        // The phases are the render's: its 7 whole rows of cells read A B B B A A A (A, B: the
+        // basket's two kinds of row), which a period of 5 rows does not fit. (Read A A B B B A A,
+        // 5 rows fit as well as 6 and nothing in view tells them apart.)
+        let basket3: Vec<Vec<u8>> = ["001110", "110001", "110001", "110001", "001110", "001110"]
+            .iter()
+            .map(|r| r.bytes().map(|b| b - b'0').collect())
+            .collect();
+        let img = render(&basket3, 21.3, 226, 226, |x, y| (x + 39.6, (y - 15.0) * 21.3 / 27.1));
+        let pr = prepare(&img, &opts_no_persp()).expect("basket 3 prepared");
+        assert_eq!((pr.n_e, pr.n_a), (6, 6), "{}", pr.to_json());
+        assert!((pr.pitch_y / 27.1 - 1.0).abs() < 0.03, "{}", pr.pitch_y);
     }
 
     /// Timing on a 1024² synthetic plain weave at pitch 12 (worst case for the repeat mean: ~1700 repeats).
