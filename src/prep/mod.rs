@@ -418,6 +418,7 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
     } else {
         halved_pitch::doubled(&gb, &ay0, &ax0, false)
     };
+    let doubled_axis = [fine_x && doubled.is_some(), !fine_x && doubled.is_some()];
     if let Some(a) = doubled {
         if fine_x {
             ax0 = a;
@@ -595,8 +596,21 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
             _ => a,
         }
     };
-    let ax = keep_n(pick(analyze_axis(&gr, true, min_pitch), &ax0), &ax0, &per_x, n_cells[0]);
-    let ay = keep_n(pick(analyze_axis(&gr, false, min_pitch), &ay0), &ay0, &per_y, n_cells[1]);
+    // An axis doubled by `halved_pitch` keeps the cells' grid where this second pass puts its
+    // boundaries more than a quarter of a yarn off it: the profile read here is the one that was
+    // read at half the yarns, and on the regularized picture its boundaries can still fall on the
+    // half-yarn lines (the seed-2525 satin 5's weft boundaries came back through the middle of
+    // the wefts). Where the two agree the second pass refines the grid as on any axis.
+    let second = |axis_x: bool, a0: &AxisGrid, per: &period::AxisPeriod, n: Option<usize>| -> AxisGrid {
+        let a = keep_n(pick(analyze_axis(&gr, axis_x, min_pitch), a0), a0, per, n);
+        let off = (a.phase - a0.phase).rem_euclid(a0.pitch);
+        if doubled_axis[usize::from(!axis_x)] && off.min(a0.pitch - off) > 0.25 * a0.pitch {
+            return a0.clone();
+        }
+        a
+    };
+    let ax = second(true, &ax0, &per_x, n_cells[0]);
+    let ay = second(false, &ay0, &per_y, n_cells[1]);
     let n_a = ((per_x.period / ax.pitch).round() as usize).max(1);
     let n_e = ((per_y.period / ay.pitch).round() as usize).max(1);
     if n_e.max(n_a) > opts.max_photo_yarns {
