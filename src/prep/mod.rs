@@ -351,28 +351,41 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
     // `grid::superposed_pitch`) gets its first pitch from the per-line autocorrelations instead.
     // The band level of an axis whose grid was found only with its colour bands divided out
     // (`grid::analyze_axis_banded`): the later steps see the image with those bands removed too.
-    let axis0 = |axis_x: bool| -> Option<(AxisGrid, Option<Vec<f64>>)> {
+    let axis0 = |axis_x: bool| -> Option<(AxisGrid, Option<Vec<f64>>, bool)> {
         let a = analyze_axis(&gb, axis_x, min_pitch);
         if a.as_ref().is_some_and(|a| a.strength >= opts.min_structure) {
-            return a.map(|a| (a, None));
+            return a.map(|a| (a, None, false));
         }
         let best = match (a, grid::analyze_axis_superposed(&gb, axis_x, min_pitch)) {
             (Some(a), Some(b)) => Some(if b.strength > a.strength { b } else { a }),
             (a, b) => a.or(b),
         };
         if best.as_ref().is_some_and(|a| a.strength >= opts.min_structure) {
-            return best.map(|a| (a, None));
+            return best.map(|a| (a, None, false));
         }
         // Still no periodic profile: a yarn-dyed stripe or check may hide the yarns under its
         // colour steps (`grid::analyze_axis_banded` divides them out with a running median).
-        match (best, grid::analyze_axis_banded(&gb, axis_x, min_pitch)) {
+        let best = match (best, grid::analyze_axis_banded(&gb, axis_x, min_pitch)) {
             (Some(a), Some((b, level))) if b.strength > a.strength => Some((b, Some(level))),
             (None, Some((b, level))) => Some((b, Some(level))),
             (a, _) => a.map(|a| (a, None)),
+        };
+        if best.as_ref().is_some_and(|(a, _)| a.strength >= opts.min_structure) {
+            return best.map(|(a, level)| (a, level, false));
+        }
+        // Still none: dark yarns whose profile ripple is swamped by bright floats of the other
+        // family in irregular runs repeat in the log luminance (`grid::analyze_axis_log`).
+        match (best, grid::analyze_axis_log(&gb, axis_x, min_pitch)) {
+            (Some((a, _)), Some(b)) if b.strength > a.strength => Some((b, None, true)),
+            (None, Some(b)) => Some((b, None, true)),
+            (a, _) => a.map(|(a, level)| (a, level, false)),
         }
     };
-    let (mut ax0, band_x) = axis0(true).ok_or(PrepError::NoStructure)?;
-    let (mut ay0, band_y) = axis0(false).ok_or(PrepError::NoStructure)?;
+    let (mut ax0, band_x, log_x) = axis0(true).ok_or(PrepError::NoStructure)?;
+    let (mut ay0, band_y, log_y) = axis0(false).ok_or(PrepError::NoStructure)?;
+    // An axis found only in the log luminance is read there again on the regularized picture
+    // (below): its luminance profile is the other family's floats, not these yarns.
+    let from_log = [log_x, log_y];
     if ax0.strength < opts.min_structure || ay0.strength < opts.min_structure {
         return Err(PrepError::NoStructure);
     }
@@ -602,7 +615,8 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
     // half-yarn lines (the seed-2525 satin 5's weft boundaries came back through the middle of
     // the wefts). Where the two agree the second pass refines the grid as on any axis.
     let second = |axis_x: bool, a0: &AxisGrid, per: &period::AxisPeriod, n: Option<usize>| -> AxisGrid {
-        let a = keep_n(pick(analyze_axis(&gr, axis_x, min_pitch), a0), a0, per, n);
+        let again = if from_log[usize::from(!axis_x)] { grid::analyze_axis_log } else { analyze_axis };
+        let a = keep_n(pick(again(&gr, axis_x, min_pitch), a0), a0, per, n);
         let off = (a.phase - a0.phase).rem_euclid(a0.pitch);
         if doubled_axis[usize::from(!axis_x)] && off.min(a0.pitch - off) > 0.25 * a0.pitch {
             return a0.clone();
