@@ -10,6 +10,8 @@
 //! 2. A first pitch estimate from the integral projections of the rectified image ([`grid`]); its
 //!    autocorrelation is the *periodicity strength* that rejects images without yarns; a pitch
 //!    about half the other axis's whose fine lines the cells pair is doubled ([`halved_pitch`]).
+//!    Both pitches half the yarns' (an open weave over a ground of another brightness) are doubled
+//!    where the doubled lattice's corners and cells' middles differ ([`halved_both`]).
 //! 3. Gaussian blur with σ = pitch/16 ([`regularize`]).
 //! 4. [`period`] — superposed distance matching functions of all rows / columns → the
 //!    minimum pattern size in pixels (§4.3, \[Asha12\]).
@@ -26,6 +28,7 @@ pub mod colour_repeat;
 pub mod drift;
 pub mod finer_yarns;
 pub mod grid;
+pub mod halved_both;
 pub mod halved_pitch;
 pub mod image_ops;
 pub mod period;
@@ -431,13 +434,19 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
     } else {
         halved_pitch::doubled(&gb, &ay0, &ax0, false)
     };
-    let doubled_axis = [fine_x && doubled.is_some(), !fine_x && doubled.is_some()];
+    let mut doubled_axis = [fine_x && doubled.is_some(), !fine_x && doubled.is_some()];
     if let Some(a) = doubled {
         if fine_x {
             ax0 = a;
         } else {
             ay0 = a;
         }
+    } else if let Some((a, b)) = halved_both::doubled(&gb, &ax0, &ay0) {
+        // Both pitches half the yarns (an open weave over a ground of another brightness: holes
+        // in the gaps and bright crowns alike): the fine lattice's corners alternate along both
+        // axes (`halved_both`).
+        (ax0, ay0) = (a, b);
+        doubled_axis = [true, true];
     }
     // 3. Blur, σ = pitch / 16.
     let pitch0 = 0.5 * (ax0.pitch + ay0.pitch);
