@@ -21,7 +21,6 @@
 //! Conventions: images are linear RGB `f32` ([`Rgb32FImage`]); the pattern has `n_e` rows (weft
 //! yarns, running along image x) and `n_a` columns (warp yarns, running along image y).
 
-pub mod cell_phase;
 pub mod cells;
 pub mod colour_repeat;
 pub mod drift;
@@ -410,16 +409,10 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
         let (p, cell_phase) = finer_count(r, &gb, coarse_x, fine, period, n, min_pitch);
         if p < 0.7 * coarse.pitch as f64 {
             let (ep, ephase, conf) = grid::edge_grid(&gb, coarse_x, p);
-            // Without an edge lattice or a finer count's cell phase, the coarse pitch's phase
-            // (the repeat's valley: a yarn's centre as often as a boundary) is only where the
-            // scan for the cleanest cells (`cell_phase`) starts.
             let (pitch, phase) = if conf >= grid::MIN_EDGE_CONFIDENCE {
                 (ep, ephase)
             } else {
-                let start = coarse.phase as f64;
-                let phase =
-                    cell_phase.or_else(|| cell_phase::cleanest_phase(&gb, coarse_x, p, start, fine)).unwrap_or(start);
-                (p, phase)
+                (p, cell_phase.unwrap_or(coarse.phase as f64))
             };
             let fixed = AxisGrid { pitch: pitch as f32, phase: phase as f32, ..coarse.clone() };
             if coarse_x {
