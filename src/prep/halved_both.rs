@@ -20,8 +20,8 @@
 //! between yarns as its corners are (`MIN_CORNER_CONTRAST`). Only the grids whose pitches both pass
 //! are doubled; an axis about half the other is `halved_pitch`'s.
 
-use super::cells::cell_matrix;
 use super::grid::AxisGrid;
+use super::halved_pitch::cell_clarity;
 use super::image_ops::Gray;
 
 /// Smallest fraction of the doubled lattice's cells that show one family on top: at the yarns'
@@ -87,24 +87,16 @@ pub fn corner_contrast(g: &Gray, pitch: [f64; 2], phase: [f64; 2], win: [f64; 2]
     Some((ma - mb).abs() / sd)
 }
 
-/// How cleanly the cells show one family on top (the fraction of cells not mixing the two, then
-/// the mean `|o|`), as `halved_pitch`'s phase choice.
-fn clarity(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<(f64, f64)> {
-    let m = cell_matrix(g, pitch, phase)?;
-    let n = m.o.len().max(1) as f64;
-    let clean = m.o.iter().filter(|v| v.abs() >= super::halved_pitch::MIXED_CELL).count() as f64 / n;
-    Some((clean, m.o.iter().map(|v| v.abs()).sum::<f64>() / n))
-}
-
 /// The phase along `axis` (0 = x) of the lattice `pitch`, the other axis at `phase`, whose cells
-/// mix the two families least, scanned in 1-px steps over one pitch from `phase[axis]`.
+/// mix the two families least (`halved_pitch`'s cell clarity: the fraction of cells not mixing
+/// the two, then the mean `|o|`), scanned in 1-px steps over one pitch from `phase[axis]`.
 fn best_phase(g: &Gray, pitch: [f64; 2], phase: [f64; 2], axis: usize) -> Option<(f64, (f64, f64))> {
     let steps = pitch[axis].ceil() as usize;
     let mut best: Option<(f64, (f64, f64))> = None;
     for t in 0..steps {
         let mut ph = phase;
         ph[axis] = phase[axis] + t as f64 * pitch[axis] / steps as f64;
-        if let Some(c) = clarity(g, pitch, ph) {
+        if let Some(c) = cell_clarity(g, pitch, ph) {
             if best.is_none_or(|b| c.partial_cmp(&b.1) == Some(std::cmp::Ordering::Greater)) {
                 best = Some((ph[axis], c));
             }

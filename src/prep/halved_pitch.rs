@@ -75,7 +75,7 @@ pub const MIXED_CELL: f64 = 0.2;
 /// can sharpen the many covered cells more than it blurs the few crossings (seed-1818
 /// herringbone 2/1: mean `|o|` 0.42 half a weft off against 0.37 on the wefts, but 18 % of its
 /// cells mixed against 3 %).
-fn cell_clarity(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<(f64, f64)> {
+pub(super) fn cell_clarity(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<(f64, f64)> {
     let m = cell_matrix(g, pitch, phase)?;
     let n = m.o.len().max(1) as f64;
     let clean = m.o.iter().filter(|v| v.abs() >= MIXED_CELL).count() as f64 / n;
