@@ -188,8 +188,19 @@ impl CellMatrix {
     /// Pearson correlation of the matrix with itself shifted by `n` cells along x (`axis_x`) or
     /// y, over the overlapping cells; `None` when fewer than 2 lines of overlap remain.
     pub fn shift_corr(&self, axis_x: bool, n: usize) -> Option<f64> {
-        let (along, across) = if axis_x { (self.cols, self.rows) } else { (self.rows, self.cols) };
+        let along = if axis_x { self.cols } else { self.rows };
         if n + 2 > along {
+            return None;
+        }
+        self.overlap_corr(axis_x, n)
+    }
+
+    /// Pearson correlation of the lines along x (`axis_x`: columns) or y (rows) with the lines
+    /// `n` further on, over every cell pair in view, however few lines overlap (one is enough;
+    /// [`Self::shift_corr`] asks for two); `None` when no line overlaps or a side is constant.
+    pub fn overlap_corr(&self, axis_x: bool, n: usize) -> Option<f64> {
+        let (along, across) = if axis_x { (self.cols, self.rows) } else { (self.rows, self.cols) };
+        if n >= along {
             return None;
         }
         let at = |i: usize, j: usize| if axis_x { self.o[j * self.cols + i] } else { self.o[i * self.cols + j] };

@@ -21,7 +21,7 @@
 //! are doubled; an axis about half the other is `halved_pitch`'s.
 
 use super::grid::AxisGrid;
-use super::halved_pitch::cell_clarity;
+use super::halved_pitch::clearest_phase;
 use super::image_ops::Gray;
 
 /// Smallest fraction of the doubled lattice's cells that show one family on top: at the yarns'
@@ -87,24 +87,6 @@ pub fn corner_contrast(g: &Gray, pitch: [f64; 2], phase: [f64; 2], win: [f64; 2]
     Some((ma - mb).abs() / sd)
 }
 
-/// The phase along `axis` (0 = x) of the lattice `pitch`, the other axis at `phase`, whose cells
-/// mix the two families least (`halved_pitch`'s cell clarity: the fraction of cells not mixing
-/// the two, then the mean `|o|`), scanned in 1-px steps over one pitch from `phase[axis]`.
-fn best_phase(g: &Gray, pitch: [f64; 2], phase: [f64; 2], axis: usize) -> Option<(f64, (f64, f64))> {
-    let steps = pitch[axis].ceil() as usize;
-    let mut best: Option<(f64, (f64, f64))> = None;
-    for t in 0..steps {
-        let mut ph = phase;
-        ph[axis] = phase[axis] + t as f64 * pitch[axis] / steps as f64;
-        if let Some(c) = cell_clarity(g, pitch, ph) {
-            if best.is_none_or(|b| c.partial_cmp(&b.1) == Some(std::cmp::Ordering::Greater)) {
-                best = Some((ph[axis], c));
-            }
-        }
-    }
-    best
-}
-
 /// The grids of the yarns when `ax` and `ay` (the grids found) are both half of them (the module
 /// docs): twice each pitch, at the phases whose cells mix the two families least. `None` when
 /// the doubled lattice's cells mix the families or its corners look as its cells' middles.
@@ -118,14 +100,14 @@ pub fn doubled(g: &Gray, ax: &AxisGrid, ay: &AxisGrid) -> Option<(AxisGrid, Axis
     // The y phase of the two parities, each with the best x phase; then y again at that x.
     let mut best: Option<(f64, f64, (f64, f64))> = None;
     for oy in [phase[1], phase[1] + pitch[1]] {
-        if let Some((px, c)) = best_phase(g, p2, [phase[0], oy], 0) {
+        if let Some((px, c)) = clearest_phase(g, p2, [phase[0], oy], 0) {
             if best.is_none_or(|b| c.partial_cmp(&b.2) == Some(std::cmp::Ordering::Greater)) {
                 best = Some((px, oy, c));
             }
         }
     }
     let (px, oy, _) = best?;
-    let (py, (clean, _)) = best_phase(g, p2, [px, oy], 1)?;
+    let (py, (clean, _)) = clearest_phase(g, p2, [px, oy], 1)?;
     let contrast = corner_contrast(g, p2, [px, py], pitch)?;
     if clean < MIN_DOUBLED_CLEAN || contrast < MIN_CORNER_CONTRAST {
         return None;

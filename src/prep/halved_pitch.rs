@@ -75,11 +75,28 @@ pub const MIXED_CELL: f64 = 0.2;
 /// can sharpen the many covered cells more than it blurs the few crossings (seed-1818
 /// herringbone 2/1: mean `|o|` 0.42 half a weft off against 0.37 on the wefts, but 18 % of its
 /// cells mixed against 3 %).
-pub(super) fn cell_clarity(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<(f64, f64)> {
+fn cell_clarity(g: &Gray, pitch: [f64; 2], phase: [f64; 2]) -> Option<(f64, f64)> {
     let m = cell_matrix(g, pitch, phase)?;
     let n = m.o.len().max(1) as f64;
     let clean = m.o.iter().filter(|v| v.abs() >= MIXED_CELL).count() as f64 / n;
     Some((clean, m.o.iter().map(|v| v.abs()).sum::<f64>() / n))
+}
+
+/// The phase along `axis` (0 = x) of the lattice `pitch`, the other axis at `phase`, whose cells
+/// mix the two families least ([`cell_clarity`]), scanned in 1-px steps over one pitch from `phase[axis]`.
+pub(super) fn clearest_phase(g: &Gray, pitch: [f64; 2], phase: [f64; 2], axis: usize) -> Option<(f64, (f64, f64))> {
+    let steps = pitch[axis].ceil() as usize;
+    let mut best: Option<(f64, (f64, f64))> = None;
+    for t in 0..steps {
+        let mut ph = phase;
+        ph[axis] = phase[axis] + t as f64 * pitch[axis] / steps as f64;
+        if let Some(c) = cell_clarity(g, pitch, ph) {
+            if best.is_none_or(|b| c.partial_cmp(&b.1) == Some(std::cmp::Ordering::Greater)) {
+                best = Some((ph[axis], c));
+            }
+        }
+    }
+    best
 }
 
 /// The grid of the yarns along `axis_x` when `fine` (the grid found along it) is half of them
@@ -124,18 +141,8 @@ pub fn doubled(g: &Gray, fine: &AxisGrid, other: &AxisGrid, axis_x: bool) -> Opt
         return None;
     }
     let p = 2.0 * q;
-    let steps = p.ceil() as usize;
-    let mut best: Option<(f64, (f64, f64))> = None;
-    for t in 0..steps {
-        let ph = fine.phase as f64 + t as f64 * p / steps as f64;
-        let (pitch, phase) = lattice(p, ph);
-        if let Some(c) = cell_clarity(g, pitch, phase) {
-            if best.is_none_or(|b| c.partial_cmp(&b.1) == Some(std::cmp::Ordering::Greater)) {
-                best = Some((ph, c));
-            }
-        }
-    }
-    let (ph, _) = best?;
+    let (pitch, phase) = lattice(p, fine.phase as f64);
+    let (ph, _) = clearest_phase(g, pitch, phase, usize::from(!axis_x))?;
     Some(AxisGrid { pitch: p as f32, phase: ph.rem_euclid(p) as f32, ..fine.clone() })
 }
 

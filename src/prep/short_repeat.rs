@@ -28,21 +28,7 @@
 //! A repeat that is not square (a herringbone of 4 columns reversing every 8 rows) fails the
 //! copy test and is left as it was.
 
-use super::cells::{pearson, CellMatrix, MIN_CELL_CORR, MIN_CELL_EXCESS, MIN_PARTIAL_CORR};
-
-/// Pearson correlation of the matrix's lines along x (`axis_x`: columns) or y (rows) with the
-/// lines `s` further on, over every cell pair in view (one line of overlap is enough); `None` when
-/// no line overlaps or a side is constant.
-fn overlap_corr(m: &CellMatrix, axis_x: bool, s: usize) -> Option<f64> {
-    let (along, across) = if axis_x { (m.cols, m.rows) } else { (m.rows, m.cols) };
-    if s >= along {
-        return None;
-    }
-    let at = |i: usize, j: usize| if axis_x { m.o[j * m.cols + i] } else { m.o[i * m.cols + j] };
-    let pairs: Vec<(f64, f64)> =
-        (0..across).flat_map(|j| (0..along - s).map(move |i| (i, j))).map(|(i, j)| (at(i, j), at(i + s, j))).collect();
-    pearson(&pairs)
-}
+use super::cells::{CellMatrix, MIN_CELL_CORR, MIN_CELL_EXCESS, MIN_PARTIAL_CORR};
 
 /// The repeat `n_other` (the other axis's) as the repeat along x (`axis_x`) or y where the cells
 /// show it less than 1.5 times, with the correlation of its copy, by the rule of the module docs;
@@ -55,13 +41,13 @@ pub fn square_over_few_lines(m: &CellMatrix, axis_x: bool, n_other: usize) -> Op
     if n < 2 || n >= along || 2 * (along - n) >= n || across < n {
         return None;
     }
-    let v = overlap_corr(m, axis_x, n)?;
+    let v = m.overlap_corr(axis_x, n)?;
     if v < MIN_PARTIAL_CORR {
         return None;
     }
     let smaller_ok = (1..n).all(|s| {
         // A constant overlap (no variance) is no evidence for a shorter period either way.
-        overlap_corr(m, axis_x, s).is_none_or(|c| c <= v - MIN_CELL_EXCESS && (s == 1 || c < MIN_CELL_CORR))
+        m.overlap_corr(axis_x, s).is_none_or(|c| c <= v - MIN_CELL_EXCESS && (s == 1 || c < MIN_CELL_CORR))
     });
     smaller_ok.then_some(v)
 }
