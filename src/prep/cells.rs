@@ -211,6 +211,28 @@ impl CellMatrix {
         pearson(&pairs)
     }
 
+    /// Whether the shift `n` along x (`axis_x`) or y is only a partial copy of the cells: some
+    /// multiple `k·n` (`k ≥ 2`, two lines of overlap or more) is a near copy
+    /// (≥ [`MIN_PARTIAL_CORR`]) that correlates at least [`MIN_CELL_EXCESS`] above `n` itself.
+    ///
+    /// Why: a herringbone is a twill whose direction reverses every few yarns, so shifting its
+    /// cells by the twill's repeat copies every line but those that straddle a reversal. The
+    /// pixel period finds the twill's repeat and the cells confirm it half-way (a Mitsuba 3
+    /// herringbone 2/1 reversing every 6 warps, seen 1.7 times: `c(3)` = 0.52, above the floor
+    /// [`MIN_CELL_CORR`], while `c(12)` = 0.97), so the pattern came back as the plain 2/1 twill.
+    /// On a true repeat its multiples are copies as good as itself.
+    pub fn partial_copy(&self, axis_x: bool, n: usize) -> bool {
+        let along = if axis_x { self.cols } else { self.rows };
+        let Some(c) = (n >= 1).then(|| self.shift_corr(axis_x, n)).flatten() else {
+            return false;
+        };
+        (2..)
+            .map(|k| k * n)
+            .take_while(|&m| m + 2 <= along)
+            .filter_map(|m| self.shift_corr(axis_x, m))
+            .any(|cm| cm >= MIN_PARTIAL_CORR && cm >= c + MIN_CELL_EXCESS)
+    }
+
     /// Pearson correlations of the neighbouring lines along x (`axis_x`: columns) or y (rows),
     /// over the pairs starting on an even line and over those starting on an odd line; each
     /// `None` where it has no pair or no variance. Lines that are each one yarn correlate alike
@@ -578,6 +600,53 @@ mod tests {
             }
         }
         assert_eq!(found, 10, "found on {found} of 10 seeds");
+    }
+
+    /// Cells of a 2/1 twill whose direction reverses every `reverse` warps (a herringbone; with
+    /// `reverse` = 0 the plain twill), 9 rows by 20 columns (the rectified view of a 256² render
+    /// holding 1.7 repeats of 12), `o = ±1` plus Gaussian noise `sigma`.
+    fn noisy_herringbone(reverse: usize, sigma: f64, seed: u64) -> CellMatrix {
+        use rand::prelude::*;
+        use rand_distr::{Distribution, Normal};
+        let mut rng = StdRng::seed_from_u64(seed);
+        let noise = Normal::new(0.0, sigma).unwrap();
+        let (rows, cols) = (9, 20);
+        // The row on which warp `j` is on top steps by +1 per warp, by −1 after a reversal.
+        let top = |j: usize| {
+            if reverse == 0 {
+                return j % 3;
+            }
+            let (half, k) = ((j / reverse) % 2, j % reverse);
+            if half == 0 {
+                k % 3
+            } else {
+                (3 * reverse + reverse - 1 - k) % 3
+            }
+        };
+        let o = (0..rows * cols)
+            .map(|k| {
+                let (i, j) = (k / cols, k % cols);
+                (if i % 3 == top(j) { -1.0 } else { 1.0 }) + noise.sample(&mut rng)
+            })
+            .collect();
+        CellMatrix { rows, cols, o }
+    }
+
+    #[test]
+    fn a_herringbone_is_not_taken_for_its_twill() {
+        for seed in 0..10 {
+            // Reversing every 6 warps: shifting by the twill's 3 copies part of the cells only,
+            // the 12 of the herringbone nearly all of them.
+            let m = noisy_herringbone(6, 0.3, seed);
+            let (c3, c12) = (m.shift_corr(true, 3).unwrap(), m.shift_corr(true, 12).unwrap());
+            assert!(c3 >= MIN_CELL_CORR && c12 >= MIN_PARTIAL_CORR, "seed {seed}: c(3) = {c3}, c(12) = {c12}");
+            assert!(m.partial_copy(true, 3), "seed {seed}");
+            assert_eq!(m.partial_repeat(true, 16).map(|r| r.0), Some(12), "seed {seed}");
+            // The plain twill's 3 is a whole copy, as good as its multiples.
+            let t = noisy_herringbone(0, 0.3, seed);
+            assert!(!t.partial_copy(true, 3), "seed {seed}");
+            assert!(!t.partial_copy(false, 3), "seed {seed}");
+        }
     }
 
     #[test]

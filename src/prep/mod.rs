@@ -478,11 +478,24 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
             // grid can pass it), so it is taken only where there is no pixel repeat or the cells
             // contradict it: the pixel period's shift is no copy of the cells (a satin's rows
             // all look alike in the pixels, its cells shifted by 2 rows correlate below 0).
-            let dmf_contradicted =
-                !per.repeated || m.shift_corr(axis_x, n_dmf).is_none_or(|c| c < cells::MIN_CELL_CORR);
+            // So is a pixel period whose multiple is a far better copy of the cells (a twill's
+            // repeat inside a herringbone: `cells::CellMatrix::partial_copy`).
+            let dmf_contradicted = !per.repeated
+                || m.shift_corr(axis_x, n_dmf).is_none_or(|c| c < cells::MIN_CELL_CORR)
+                || m.partial_copy(axis_x, n_dmf);
             let found = m
                 .repeat(axis_x, opts.max_photo_yarns)
                 .or_else(|| dmf_contradicted.then(|| m.partial_repeat(axis_x, opts.max_photo_yarns)).flatten());
+            if std::env::var_os("WOVEN_TRACE_PREP").is_some() {
+                let c: Vec<String> = (1..=m.cols.max(m.rows))
+                    .filter_map(|n| m.shift_corr(axis_x, n).map(|c| format!("{n}:{c:.2}")))
+                    .collect();
+                eprintln!(
+                    "prep 4b axis_x={axis_x} n_dmf={n_dmf} pixel_repeated={} dmf_contradicted={dmf_contradicted} found={found:?} shifts {}",
+                    per.repeated,
+                    c.join(" ")
+                );
+            }
             if let Some((n, c)) = found {
                 if !per.repeated || n_dmf != n {
                     *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
