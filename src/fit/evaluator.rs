@@ -404,6 +404,10 @@ pub(crate) struct Evaluator {
     /// text (every parameter printed to its shortest round-trip decimal, so equal keys are equal
     /// parameters bit for bit), with their MSE.
     memo: Mutex<Vec<(String, f32)>>,
+    /// The record the last scoring of a whole state by [`Evaluator::trace_mse`] traced, keyed
+    /// like `memo`: the next [`Evaluator::record`] of the same state takes it instead of tracing
+    /// again (see [`Evaluator::record`]).
+    last_scored: Mutex<Option<(String, PathCache)>>,
 }
 
 impl Evaluator {
@@ -426,6 +430,7 @@ impl Evaluator {
             traces,
             backdrop: false,
             memo: Mutex::default(),
+            last_scored: Mutex::default(),
         }
     }
 
@@ -572,8 +577,40 @@ impl Evaluator {
         img
     }
 
-    /// Trace the paths of `cloth` (one re-trace).
+    /// Trace the paths of `cloth` (one re-trace), or take the record [`Evaluator::trace_mse`]
+    /// made of this very state when it was the last state that scored anew (counted as reused).
+    ///
+    /// Why: the fit often scores a state and then descends from it. The stage clock's loss probe
+    /// (`stages::StageClock::mark`) scores the state each stage leaves, and the next stage starts
+    /// by recording that state for its descent (the finish's rivals and toggles, the cue
+    /// contest, the light scan, the winner's restarts, the hair, the exposure trade, the output).
+    /// A record is a deterministic function of the cloth and this evaluator's fixed scene (as
+    /// [`RecordMemo`] relies on), so the taken record is the same bits as a fresh trace. It is
+    /// handed over, not copied: a second record of the state traces again.
     pub(crate) fn record(&self, cloth: &ClothParams) -> PathCache {
+        if let Some(cache) = self.take_last_scored(cloth) {
+            self.traces.add_reused();
+            return cache;
+        }
+        self.trace(cloth)
+    }
+
+    /// The record [`Evaluator::trace_mse`] kept of `cloth`, taken out, if it was the last state it
+    /// traced.
+    fn take_last_scored(&self, cloth: &ClothParams) -> Option<PathCache> {
+        let mut last = self.last_scored.lock().ok()?;
+        let key = format!("{cloth:?}");
+        match last.take() {
+            Some((k, cache)) if k == key => Some(cache),
+            other => {
+                *last = other;
+                None
+            }
+        }
+    }
+
+    /// Trace the paths of `cloth` (one re-trace), always.
+    fn trace(&self, cloth: &ClothParams) -> PathCache {
         self.traces.add();
         Prepared::new(cloth, &self.scene, &self.opts).record(&cloth.appearance)
     }
@@ -619,12 +656,16 @@ impl Evaluator {
             self.traces.add_reused();
             return l;
         }
-        let l = self.loss_of(&self.record(cloth), &cloth.appearance);
+        let cache = self.record(cloth);
+        let l = self.loss_of(&cache, &cloth.appearance);
         if let Ok(mut m) = self.memo.lock() {
             if m.len() >= MEMO_STATES {
                 m.remove(0);
             }
-            m.push((key, l));
+            m.push((key.clone(), l));
+        }
+        if let Ok(mut last) = self.last_scored.lock() {
+            *last = Some((key, cache));
         }
         l
     }
@@ -912,6 +953,38 @@ mod tests {
         let n = ev.traces().count();
         sib.trace_mse(&cloth);
         assert_eq!(ev.traces().count(), n + 1);
+    }
+
+    /// The record of the state scored last is handed to the next record of that state without a
+    /// re-trace, the same bits as a fresh trace; once only; another state, or a state scored
+    /// before the last, is traced.
+    #[test]
+    fn the_last_scored_states_record_is_taken_by_its_next_record_once() {
+        let cloth = ClothParams::preset("plain").expect("preset");
+        let scene = fit_scene(2, 2, 4, 2, 1, &LightRig::default_rig());
+        let target = Image::filled(8, 8, [0.4; 3]);
+        let ev = Evaluator::new(scene.clone(), target.clone(), 2);
+        let l = ev.trace_mse(&cloth);
+        let taken = ev.record(&cloth);
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (1, 1), "taken, not traced");
+        let fresh = Evaluator::new(scene, target, 2).record(&cloth);
+        let bits = |img: Image| img.data.iter().flat_map(|p| p.map(f32::to_bits)).collect::<Vec<u32>>();
+        assert_eq!(bits(taken.shade(&cloth.appearance)), bits(fresh.shade(&cloth.appearance)));
+        assert_eq!(ev.loss_of(&taken, &cloth.appearance).to_bits(), l.to_bits());
+        // Handed over once: the next record of the same state traces.
+        ev.record(&cloth);
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (2, 1));
+        // A score from the loss memo keeps no record; another state scored since: the first
+        // state's record is not kept, the other's is.
+        let mut other = cloth.clone();
+        other.r_a += 0.5;
+        ev.trace_mse(&cloth);
+        ev.trace_mse(&other);
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (3, 2));
+        ev.record(&cloth);
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (4, 2));
+        ev.record(&other);
+        assert_eq!((ev.traces().count(), ev.traces().reused()), (4, 3));
     }
 
     #[test]

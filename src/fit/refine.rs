@@ -323,36 +323,47 @@ impl LmProblem for AppearanceLm<'_> {
 
 /// One Newton step of the two yarn radii from central differences (four re-traces at `±h`, the
 /// appearance held), kept only when the re-traced loss drops; otherwise the best single-radius
-/// probe is kept if it is lower. Returns the loss of the state left in `cloth` and whether the
-/// geometry changed.
-pub(super) fn radius_newton(ev: &Evaluator, cloth: &mut ClothParams, l0: f32, h: f32) -> (f32, bool) {
+/// probe is kept if it is lower. Returns the loss of the state left in `cloth` and, where the
+/// geometry changed, the record of the state it moved to (`None`: it stayed). Every probe is a
+/// fresh trace of a whole cloth whose appearance is `cloth`'s, so the record of the probe that is
+/// kept is the same bits as a re-trace of the moved `cloth` (`Evaluator::record` is a
+/// deterministic function of the cloth and the fixed scene): [`polish`] descends on it instead
+/// of tracing the state again, one re-trace saved of the six of each round that moves.
+pub(super) fn radius_newton(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    l0: f32,
+    h: f32,
+) -> (f32, Option<crate::render::PathCache>) {
     let (lo, hi) = RADIUS_RANGE;
-    let at = |re: f32, ra: f32| {
+    let r0 = [cloth.r_e, cloth.r_a];
+    // The lowest finite probe so far (the first of equals, as `min_by` keeps it).
+    let mut best: Option<(f32, ClothParams, crate::render::PathCache)> = None;
+    let mut at = |re: f32, ra: f32| {
         let mut c = cloth.clone();
         (c.r_e, c.r_a) = (re.clamp(lo, hi), ra.clamp(lo, hi));
-        let l = ev.loss_of(&ev.record(&c), &c.appearance);
-        (l + anneal::appearance_barrier(&c.appearance.to_vec()).0, c)
+        let record = ev.record(&c);
+        let l = ev.loss_of(&record, &c.appearance) + anneal::appearance_barrier(&c.appearance.to_vec()).0;
+        if l.is_finite() && best.as_ref().is_none_or(|b| l.total_cmp(&b.0).is_lt()) {
+            best = Some((l, c, record));
+        }
+        l
     };
-    let r0 = [cloth.r_e, cloth.r_a];
-    let mut probes: Vec<(f32, ClothParams)> = Vec::new();
     let mut step = [0.0f32; 2];
     for (q, st) in step.iter_mut().enumerate() {
         let shift = |s: f32| if q == 0 { (r0[0] + s, r0[1]) } else { (r0[0], r0[1] + s) };
         let (p, m) = (at(shift(h).0, shift(h).1), at(shift(-h).0, shift(-h).1));
-        let grad = (p.0 - m.0) / (2.0 * h);
-        let curv = (p.0 - 2.0 * l0 + m.0) / (h * h);
+        let grad = (p - m) / (2.0 * h);
+        let curv = (p - 2.0 * l0 + m) / (h * h);
         *st = if curv > 0.0 { (-grad / curv).clamp(-8.0 * h, 8.0 * h) } else { -2.0 * h * grad.signum() };
-        probes.extend([p, m]);
     }
-    let joint = at(r0[0] + step[0], r0[1] + step[1]);
-    probes.push(joint);
-    let best = probes.into_iter().filter(|p| p.0.is_finite()).min_by(|a, b| a.0.total_cmp(&b.0));
+    at(r0[0] + step[0], r0[1] + step[1]);
     match best {
-        Some((l, c)) if l < l0 => {
+        Some((l, c, record)) if l < l0 => {
             *cloth = c;
-            (l, true)
+            (l, Some(record))
         }
-        _ => (l0, false),
+        _ => (l0, None),
     }
 }
 
@@ -373,12 +384,11 @@ pub(super) fn polish(
         if stop.load(Ordering::Relaxed) {
             break;
         }
+        // The step's own record of the state it moved to: the same bits as a re-trace.
         let (l, moved) = radius_newton(ev, cloth, loss, RADIUS_H);
         loss = l;
-        if !moved {
-            break;
-        }
-        cache = ev.record(cloth);
+        let Some(record) = moved else { break };
+        cache = record;
         loss = lm_appearance(ev, &cache, cloth, lm_iters, stop);
     }
     loss
@@ -478,6 +488,41 @@ mod tests {
             let polish = 1e-6 * f64::max(d, 1e-12);
             assert_eq!((rel * d).max(LM_DAMPING_FLOOR).to_bits(), polish.to_bits(), "diag {d:e}");
         }
+    }
+
+    /// The record the radius step hands back is the moved state's own record, bit for bit (a
+    /// fresh trace shades to the same loss), and a polish round that moves traces five states,
+    /// not six: the moved one is not traced again. A step that stays hands back none.
+    #[test]
+    fn the_radius_steps_record_is_the_moved_states_and_is_not_traced_again() {
+        let truth = crate::fit::demo::demo_cloth();
+        let ev = noise_free(&truth);
+        let mut cloth = truth.clone();
+        (cloth.r_e, cloth.r_a) = (truth.r_e - 0.3, truth.r_a + 0.3);
+        let l0 = ev.loss_of(&ev.record(&cloth), &cloth.appearance);
+        let before = ev.traces().count();
+        let (l, record) = radius_newton(&ev, &mut cloth, l0, RADIUS_H);
+        assert_eq!(ev.traces().count() - before, 5, "four probes and the step");
+        let record = record.expect("the step moves a state 0.3 off");
+        assert!(l < l0);
+        let fresh = ev.record(&cloth);
+        assert_eq!(
+            ev.loss_of(&record, &cloth.appearance).to_bits(),
+            ev.loss_of(&fresh, &cloth.appearance).to_bits(),
+            "the kept record is the moved state's"
+        );
+        // At the truth (loss 0) no probe is lower: it stays, with no record.
+        let mut at_truth = truth.clone();
+        let (l, record) = radius_newton(&ev, &mut at_truth, 0.0, RADIUS_H);
+        assert!(record.is_none() && l == 0.0 && at_truth == truth);
+        // One polish round that moves: the start's record and the five probes, nothing more
+        // (no appearance iterations, so that the round starts where the step above did).
+        let mut c = truth.clone();
+        (c.r_e, c.r_a) = (truth.r_e - 0.3, truth.r_a + 0.3);
+        let before = ev.traces().count();
+        polish(&ev, &mut c, 1, 0, &AtomicBool::new(false));
+        assert_ne!((c.r_e, c.r_a), (truth.r_e - 0.3, truth.r_a + 0.3), "the round moved");
+        assert_eq!(ev.traces().count() - before, 6);
     }
 
     #[test]

@@ -104,10 +104,14 @@ mod tests {
         ev.record(&cloth);
         ev.record(&cloth);
         clock.mark("a", &ev, Some(&cloth));
+        // The first record after the probe takes the probe's record (`Evaluator::record`); the
+        // second traces.
+        ev.record(&cloth);
         ev.record(&cloth);
         clock.mark("b", &ev, None);
         let s = &clock.stages;
         assert_eq!((s[0].stage, s[0].retraces, s[1].stage, s[1].retraces), ("a", 2, "b", 1));
+        assert_eq!((s[0].reused, s[1].reused), (0, 1));
         let l = total_loss(ev.trace_mse(&cloth), &cloth.appearance.to_vec());
         assert_eq!(s[0].loss, Some(l));
         assert_eq!(s[1].loss, None);
