@@ -28,7 +28,7 @@ const CELL_MARGIN: f32 = 0.1;
 /// Rounds of the level solve: the render is affine in one family's body colours only for light
 /// scattered once by the body; multiple scattering, the other family's light blurred into the
 /// cells and the solved backdrop move a little with them, and a second round takes up what the
-/// first left (checked in the tests: after two rounds the means agree to 0.3 %).
+/// first left (the tests: after two rounds the means agree within 1 %).
 const LEVEL_ROUNDS: usize = 2;
 /// Largest factor (and smallest, its inverse) one round may apply to a family's body colours:
 /// the correction is a few to some tens of percent; a family whose body sends back almost none of
@@ -112,7 +112,7 @@ pub(crate) fn match_family_levels(ev: &Evaluator, cloth: &mut ClothParams, c: u3
 /// body carries under [`MIN_BODY_SHARE`] of the mean.
 fn gains(t: [f32; 3], m: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     std::array::from_fn(|k| {
-        if !(b[k] > MIN_BODY_SHARE * m[k].max(0.0)) || !(b[k] > 0.0) {
+        if b[k].is_nan() || b[k] <= 0.0 || b[k] <= MIN_BODY_SHARE * m[k].max(0.0) {
             return 1.0;
         }
         (1.0 + (t[k] - m[k]) / b[k]).clamp(1.0 / MAX_GAIN, MAX_GAIN)
