@@ -125,11 +125,6 @@ pub struct FitArgs {
     /// the cloth normal, and its front light tilted, where that lowers the loss).
     #[arg(long)]
     pub fixed_light: bool,
-    /// Leave each yarn family's colour level where the sRGB loss put it (by default, on a prepared
-    /// photo, the body colours are scaled at the end until each family's linear mean matches the
-    /// picture's).
-    #[arg(long)]
-    pub no_family_levels: bool,
 }
 
 impl FitArgs {
@@ -163,7 +158,6 @@ impl FitArgs {
         o.finish.svcolor = u32::from(self.svcolor);
         o.finish.yarn_colours = !self.uniform_colours;
         o.finish.light_direction = !self.fixed_light;
-        o.finish.family_levels = !self.no_family_levels;
         Ok(o)
     }
 }

@@ -44,7 +44,6 @@ pub mod demo;
 pub(crate) mod display_range;
 pub mod eval;
 mod evaluator;
-mod family_level;
 mod finish;
 mod hair_extra;
 mod held_out;
@@ -378,16 +377,6 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         let hdr = refine::trade_exposure(&hdr, &mut cloth, lm, stop).unwrap_or(hdr);
         stages.mark("display range", &hdr, Some(&cloth));
         hdr
-    };
-    // The sRGB loss sets each family's level below its linear mean where the model cannot follow
-    // the contrast inside its cells; the level is set by the mean (`family_level`).
-    let ev = if photo && !joint.stopped && opts.finish.family_levels {
-        let (_, raised) = family_level::match_family_levels(&ev, &mut cloth, r.px_per_cell);
-        let ev = raised.unwrap_or(ev);
-        stages.mark("family levels", &ev, Some(&cloth));
-        ev
-    } else {
-        ev
     };
     if !joint.stopped && opts.finish.svcolor > 0 {
         cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));

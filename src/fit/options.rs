@@ -231,10 +231,6 @@ pub struct FinishOptions {
     /// where that lowers the loss, before the winner's polish (`refine::fit_light_direction`):
     /// the photo's light comes from wherever it was put, the rig's from one fixed direction.
     pub light_direction: bool,
-    /// On a prepared photo, after the last descent, scale each yarn family's body colours until
-    /// the render's linear mean over the family's cells equals the target's (`family_level`: the
-    /// sRGB loss leaves contrasted families darker than the picture).
-    pub family_levels: bool,
 }
 
 impl Default for FinishOptions {
@@ -246,7 +242,6 @@ impl Default for FinishOptions {
             svcolor: 0,
             yarn_colours: true,
             light_direction: true,
-            family_levels: true,
         }
     }
 }
