@@ -340,6 +340,12 @@ impl TraceCounter {
     }
 }
 
+/// The key of a whole state in the evaluator's memos: its `Debug` text, every parameter printed
+/// to its shortest round-trip decimal, so equal keys are equal parameters bit for bit.
+fn state_key(cloth: &ClothParams) -> String {
+    format!("{cloth:?}")
+}
+
 /// The recorded paths of the states one scan traced on one evaluator, answered again without a
 /// re-trace when the scan asks for the same state (the whole cloth, appearance included: the
 /// appearance steers the sampling of the recorded paths, `Prepared::record`). A record is a
@@ -351,7 +357,7 @@ impl TraceCounter {
 /// dropped (a record at the fit's pixels per cell is a few MB; a scan traces about 50 states).
 pub(crate) struct RecordMemo<'a> {
     ev: &'a Evaluator,
-    /// Every state recorded so far, keyed by its `Debug` text (as [`Evaluator::trace_mse`]).
+    /// Every state recorded so far, keyed by [`state_key`].
     states: Mutex<Vec<(String, Arc<PathCache>)>>,
 }
 
@@ -369,7 +375,7 @@ impl<'a> RecordMemo<'a> {
     /// The recorded paths of `cloth` ([`Evaluator::record`]), traced once per distinct state; a
     /// repeat is counted as reused on the evaluator's counter.
     pub(crate) fn record(&self, cloth: &ClothParams) -> Arc<PathCache> {
-        let key = format!("{cloth:?}");
+        let key = state_key(cloth);
         let known = self.states.lock().ok().and_then(|m| m.iter().find(|(k, _)| *k == key).map(|(_, c)| c.clone()));
         if let Some(c) = known {
             self.ev.traces.add_reused();
@@ -400,9 +406,8 @@ pub(crate) struct Evaluator {
     /// Whether a backdrop is solved for the samples that miss the cloth (see
     /// [`Evaluator::with_backdrop`]).
     backdrop: bool,
-    /// The last [`MEMO_STATES`] states [`Evaluator::trace_mse`] scored, keyed by their `Debug`
-    /// text (every parameter printed to its shortest round-trip decimal, so equal keys are equal
-    /// parameters bit for bit), with their MSE.
+    /// The last [`MEMO_STATES`] states [`Evaluator::trace_mse`] scored, keyed by [`state_key`],
+    /// with their MSE.
     memo: Mutex<Vec<(String, f32)>>,
     /// The record the last scoring of a whole state by [`Evaluator::trace_mse`] traced, keyed
     /// like `memo`: the next [`Evaluator::record`] of the same state takes it instead of tracing
@@ -599,7 +604,7 @@ impl Evaluator {
     /// traced.
     fn take_last_scored(&self, cloth: &ClothParams) -> Option<PathCache> {
         let mut last = self.last_scored.lock().ok()?;
-        let key = format!("{cloth:?}");
+        let key = state_key(cloth);
         match last.take() {
             Some((k, cache)) if k == key => Some(cache),
             other => {
@@ -650,13 +655,14 @@ impl Evaluator {
     /// best state as it was; the scans of `n_p`, `n_f`, the shape and the hair, whose grids hold
     /// the current value; the rivals' re-ranking, whose candidates hold the best pattern).
     pub(crate) fn trace_mse(&self, cloth: &ClothParams) -> f32 {
-        let key = format!("{cloth:?}");
+        let key = state_key(cloth);
         let known = self.memo.lock().ok().and_then(|m| m.iter().rev().find(|(k, _)| *k == key).map(|(_, l)| *l));
         if let Some(l) = known {
             self.traces.add_reused();
             return l;
         }
-        let cache = self.record(cloth);
+        // Not `record`: the state it could take (the last scored) is in the memo checked above.
+        let cache = self.trace(cloth);
         let l = self.loss_of(&cache, &cloth.appearance);
         if let Ok(mut m) = self.memo.lock() {
             if m.len() >= MEMO_STATES {

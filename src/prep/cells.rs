@@ -223,7 +223,8 @@ impl CellMatrix {
     /// On a true repeat its multiples are copies as good as itself.
     pub fn partial_copy(&self, axis_x: bool, n: usize) -> bool {
         let along = if axis_x { self.cols } else { self.rows };
-        let Some(c) = (n >= 1).then(|| self.shift_corr(axis_x, n)).flatten() else {
+        // n = 0 has no multiples to walk (every one is 0).
+        let Some(c) = self.shift_corr(axis_x, n).filter(|_| n > 0) else {
             return false;
         };
         (2..)
