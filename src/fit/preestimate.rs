@@ -487,7 +487,7 @@ fn new_shapes(more: Vec<ClothParams>, found: &[ClothParams]) -> Vec<ClothParams>
 /// not a number is not behind ([`RIVAL_MARGIN`] says why the split).
 fn split_behind(warm: &[(f32, ClothParams)], margin: f32) -> (Vec<ClothParams>, Vec<ClothParams>) {
     let lead = warm.iter().map(|w| w.0).filter(|l| !l.is_nan()).fold(f32::INFINITY, f32::min);
-    let (near, far): (Vec<_>, Vec<_>) = warm.iter().partition(|w| !(w.0 > lead * (1.0 + margin)));
+    let (near, far): (Vec<_>, Vec<_>) = warm.iter().partition(|w| w.0.is_nan() || w.0 <= lead * (1.0 + margin));
     let states = |v: Vec<&(f32, ClothParams)>| v.into_iter().map(|w| w.1.clone()).collect();
     (states(near), states(far))
 }
