@@ -21,8 +21,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 const POLISH_ROUNDS: usize = 4;
 /// Appearance restarts of the winner (see `refine::appearance_restarts`).
 const RESTARTS: usize = 6;
-/// Radius rounds of the winner's polish at `fine_spp`, where the rounds at the fit's spp were
-/// still moving the radii at their last round (none where they settled: [`polish_winner`]).
+/// Radius rounds of the winner's polish at `fine_spp`.
 const FINE_ROUNDS: usize = 1;
 /// Most single-cell contests at the end of the finish.
 const TOGGLE_ROUNDS: usize = 3;
@@ -266,23 +265,16 @@ fn toggle_contest(
 }
 
 /// The winner's last polish (when `opts.fine_spp > 0`): appearance restarts, a polish to
-/// convergence at the fit's spp, then one at `fine_spp` (another sample set): its appearance
-/// descent always, its radius round ([`FINE_ROUNDS`]) only where the rounds at the fit's spp ended
-/// still moving the radii.
-///
-/// Why: the radius round at `fine_spp` is five traces at four times the fit's samples (a third of
-/// the polish stage's CPU on the whole-path 5×5s), and where a Newton step at the fit's spp
-/// already found no lower probe ±0.1 around the radii, they sit at the loss's minimum to within
-/// its noise; the fine samples' descent of the appearance, which costs no trace, still runs.
+/// convergence at the fit's spp, then one at `fine_spp` (another sample set).
 pub(crate) fn polish_winner(st: &Stage, opts: &FinishOptions, cloth: &mut ClothParams) {
     if opts.fine_spp == 0 {
         return;
     }
     let (ev, stop, seed) = (st.ev, &*st.control.stop, st.render.seed);
     refine::appearance_restarts(ev, cloth, RESTARTS, 2 * opts.lm_iters, seed, stop);
-    let (_, settled) = refine::polish_settled(ev, cloth, POLISH_ROUNDS, opts.lm_iters, stop);
+    refine::polish(ev, cloth, POLISH_ROUNDS, opts.lm_iters, stop);
     let fine = ev.resampled(opts.fine_spp, seed.wrapping_add(3));
-    refine::polish(&fine, cloth, if settled { 0 } else { FINE_ROUNDS }, opts.lm_iters, stop);
+    refine::polish(&fine, cloth, FINE_ROUNDS, opts.lm_iters, stop);
 }
 
 #[cfg(test)]

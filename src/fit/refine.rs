@@ -378,18 +378,6 @@ pub(super) fn polish(
     lm_iters: usize,
     stop: &AtomicBool,
 ) -> f32 {
-    polish_settled(ev, cloth, rounds, lm_iters, stop).0
-}
-
-/// [`polish`], and whether the radii settled: a round's Newton step found no lower probe and
-/// stayed, which ends the rounds early (false when every round moved them, or `rounds` is 0).
-pub(super) fn polish_settled(
-    ev: &Evaluator,
-    cloth: &mut ClothParams,
-    rounds: usize,
-    lm_iters: usize,
-    stop: &AtomicBool,
-) -> (f32, bool) {
     let mut cache = ev.record(cloth);
     let mut loss = lm_appearance(ev, &cache, cloth, lm_iters, stop);
     for _ in 0..rounds {
@@ -399,11 +387,11 @@ pub(super) fn polish_settled(
         // The step's own record of the state it moved to: the same bits as a re-trace.
         let (l, moved) = radius_newton(ev, cloth, loss, RADIUS_H);
         loss = l;
-        let Some(record) = moved else { return (loss, true) };
+        let Some(record) = moved else { break };
         cache = record;
         loss = lm_appearance(ev, &cache, cloth, lm_iters, stop);
     }
-    (loss, false)
+    loss
 }
 
 /// Appearance scalars that shape the lobes and the self-shadowing rather than set a colour
@@ -535,22 +523,6 @@ mod tests {
         polish(&ev, &mut c, 1, 0, &AtomicBool::new(false));
         assert_ne!((c.r_e, c.r_a), (truth.r_e - 0.3, truth.r_a + 0.3), "the round moved");
         assert_eq!(ev.traces().count() - before, 6);
-    }
-
-    /// A polish at the truth settles in its first round (the step finds no lower probe), one
-    /// started 0.3 off with a single round moves and has not settled, and no rounds never settle.
-    #[test]
-    fn the_polish_says_whether_its_radii_settled() {
-        let truth = crate::fit::demo::demo_cloth();
-        let ev = noise_free(&truth);
-        let stop = AtomicBool::new(false);
-        let mut at_truth = truth.clone();
-        assert_eq!(polish_settled(&ev, &mut at_truth, 4, 0, &stop), (0.0, true));
-        let mut off = truth.clone();
-        (off.r_e, off.r_a) = (truth.r_e - 0.3, truth.r_a + 0.3);
-        let (l, settled) = polish_settled(&ev, &mut off.clone(), 1, 0, &stop);
-        assert!(!settled && l > 0.0);
-        assert!(!polish_settled(&ev, &mut truth.clone(), 0, 0, &stop).1);
     }
 
     #[test]
