@@ -466,7 +466,7 @@ fn reading_view_contest(
     }
     // The cells read from the photo's structure, with the appearance it was warmed up with.
     if let Some(p) = cue.filter(|p| readings.iter().all(|r| r.pattern != **p)) {
-        let warmed = pre.warmed.iter().find(|c| c.pattern == *p).cloned();
+        let warmed = pre.warmed.iter().chain(&pre.behind).find(|c| c.pattern == *p).cloned();
         readings.push(warmed.unwrap_or_else(|| ClothParams { pattern: p.clone(), ..pre.initial.clone() }));
     }
     for k in 0..readings.len() {
@@ -474,7 +474,7 @@ fn reading_view_contest(
         if inverse.has_unbound_yarn() || readings.iter().any(|r| r.pattern == inverse) {
             continue;
         }
-        let twin = pre.warmed.iter().find(|c| c.pattern == inverse).cloned();
+        let twin = pre.warmed.iter().chain(&pre.behind).find(|c| c.pattern == inverse).cloned();
         readings.push(twin.unwrap_or_else(|| candidates::inverted_twin(&readings[k])));
     }
     if readings.len() == 1 {
@@ -566,14 +566,23 @@ mod tests {
         let (truth, ev0) = shifted_two_colour_twill();
         let stop = AtomicBool::new(false);
         let twin = candidates::inverted_twin(&truth);
-        let mut pre =
-            preestimate::PreEstimate { starts: vec![twin.clone()], warmed: vec![twin.clone()], initial: twin.clone() };
+        let mut pre = preestimate::PreEstimate {
+            starts: vec![twin.clone()],
+            warmed: vec![twin.clone()],
+            behind: vec![],
+            initial: twin.clone(),
+        };
         let (shift, _) = reading_view_contest(&ev0, &mut pre, None, 0.0, 6, &stop);
         assert_eq!(pre.initial.pattern, truth.pattern, "kept {}", pre.initial.pattern);
         assert_eq!(pre.starts[0].pattern, truth.pattern);
         assert_eq!(shift, (-2, 0));
         assert!(pre.warmed.iter().any(|w| w.pattern == twin.pattern));
-        let mut kept = preestimate::PreEstimate { starts: vec![truth.clone()], warmed: vec![], initial: truth.clone() };
+        let mut kept = preestimate::PreEstimate {
+            starts: vec![truth.clone()],
+            warmed: vec![],
+            behind: vec![],
+            initial: truth.clone(),
+        };
         assert_eq!(reading_view_contest(&ev0, &mut kept, None, 0.0, 6, &stop).0, (-2, 0));
         assert_eq!(kept.initial, truth);
     }
@@ -588,7 +597,12 @@ mod tests {
         let stop = AtomicBool::new(false);
         let mut wrong = truth.clone();
         wrong.pattern = WeavePattern::parse("1100/1100/0011/0011").unwrap();
-        let fresh = || preestimate::PreEstimate { starts: vec![wrong.clone()], warmed: vec![], initial: wrong.clone() };
+        let fresh = || preestimate::PreEstimate {
+            starts: vec![wrong.clone()],
+            warmed: vec![],
+            behind: vec![],
+            initial: wrong.clone(),
+        };
         let mut without = fresh();
         reading_view_contest(&ev0, &mut without, None, 0.0, 6, &stop);
         assert_ne!(without.initial.pattern, truth.pattern);

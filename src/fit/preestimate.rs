@@ -65,8 +65,12 @@ pub(crate) fn default_cloth(pattern: WeavePattern) -> ClothParams {
 pub(crate) struct PreEstimate {
     /// Starts of the joint runs, best first.
     pub starts: Vec<ClothParams>,
-    /// Every warmed-up candidate, best first (rivals in the finish).
+    /// The warmed-up candidates within [`RIVAL_MARGIN`] of the best warm-up loss, best first
+    /// (rivals in the finish), and the twin contest's loser.
     pub warmed: Vec<ClothParams>,
+    /// The warmed-up candidates further behind ([`split_behind`]): no rivals in the finish, but
+    /// the view contest still takes a reading's warmed-up appearance from them.
+    pub behind: Vec<ClothParams>,
     /// The cloth after pre-estimation (the first start).
     pub initial: ClothParams,
 }
@@ -84,7 +88,7 @@ pub(crate) fn pre_estimate(
     clock: &mut StageClock,
 ) -> Result<PreEstimate> {
     if !opts.enabled {
-        return Ok(PreEstimate { starts: vec![cloth.clone()], warmed: Vec::new(), initial: cloth });
+        return Ok(PreEstimate { starts: vec![cloth.clone()], warmed: Vec::new(), behind: Vec::new(), initial: cloth });
     }
     let (stop, c) = (&*st.control.stop, st.render.px_per_cell);
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
@@ -173,7 +177,7 @@ pub(crate) fn pre_estimate(
         let choice = PatternChoice::new(&pre_ev, st.cells, &first);
         warm.sort_by(|a, b| choice.score(a.0, &a.1).total_cmp(&choice.score(b.0, &b.1)));
     }
-    let mut warmed: Vec<ClothParams> = warm.iter().map(|w| w.1.clone()).collect();
+    let (mut warmed, behind) = split_behind(&warm, RIVAL_MARGIN);
     let mut starts = choose_starts(warm, opts.starts, opts.start_margin);
     clock.mark("warm-up", st.ev, starts.first());
     if st.cells {
@@ -191,7 +195,7 @@ pub(crate) fn pre_estimate(
         clock.mark("twin", st.ev, starts.first());
     }
     let initial = starts.first().cloned().unwrap_or(cloth);
-    Ok(PreEstimate { starts, warmed, initial })
+    Ok(PreEstimate { starts, warmed, behind, initial })
 }
 
 /// The contest of `cloth` against its inverted twin (pattern inverted, the families' body colours
@@ -373,6 +377,16 @@ fn reading_confidence(logits: &[Vec<f32>], p: &WeavePattern) -> f32 {
     least.max(0.0)
 }
 
+/// Most a warmed-up candidate's loss may exceed the lowest warm-up loss (as a fraction of it) for
+/// the candidate to be a rival in the finish ([`split_behind`]; `finish::finish_runs`). Every
+/// rival costs the finish one trace at the fit's samples and an appearance descent, and a
+/// candidate far behind after its own warm-up does not win there. Why 1 (twice the lowest loss):
+/// the finish's descent and run-off lower a rival's loss by a few percent to ~10 % against the
+/// leader's (FabricNET W116, `finish::runoff`), and the every-pixel reading, the largest move
+/// measured in the warm-up, by a factor 1.36 ([`EVERY_PIXEL_MARGIN`]); see docs/benchmarks.md,
+/// session 28, for the ratios of the candidates that won.
+const RIVAL_MARGIN: f32 = 1.0;
+
 /// Most a candidate's best descent with the yarn-pixel reading may exceed the best candidate's
 /// (as a fraction of it) for the candidate to get the every-pixel reading's scan too
 /// ([`warm_up`]). In the logs of 20 fits (own whole-path targets, Mitsuba scenes, real photos;
@@ -466,6 +480,16 @@ fn new_shapes(more: Vec<ClothParams>, found: &[ClothParams]) -> Vec<ClothParams>
         }
     }
     out
+}
+
+/// The warmed-up candidates `warm` (loss, cloth) split into those within `margin` of the lowest
+/// loss (as a fraction of it) and those further behind, each in `warm`'s order; a loss that is
+/// not a number is not behind ([`RIVAL_MARGIN`] says why the split).
+fn split_behind(warm: &[(f32, ClothParams)], margin: f32) -> (Vec<ClothParams>, Vec<ClothParams>) {
+    let lead = warm.iter().map(|w| w.0).filter(|l| !l.is_nan()).fold(f32::INFINITY, f32::min);
+    let (near, far): (Vec<_>, Vec<_>) = warm.iter().partition(|w| w.0.is_nan() || w.0 <= lead * (1.0 + margin));
+    let states = |v: Vec<&(f32, ClothParams)>| v.into_iter().map(|w| w.1.clone()).collect();
+    (states(near), states(far))
 }
 
 /// The starts among the warmed-up candidates `warm` (sorted, best first): the leader, and
@@ -812,6 +836,21 @@ mod tests {
         let more = vec![c(4, 3.0), c(5, 3.0), c(5, 3.0), c(3, 3.5)];
         let got: Vec<(u32, f32)> = new_shapes(more, &found).iter().map(|v| (v.n_p, v.r_e)).collect();
         assert_eq!(got, vec![(5, 3.0), (3, 3.5)]);
+    }
+
+    /// Candidates more than the margin behind the lowest warm-up loss are no rivals, in any
+    /// position; the leader need not come first, and a loss that is not a number stays a rival.
+    #[test]
+    fn candidates_far_behind_the_lowest_warm_up_loss_are_split_off() {
+        let warm =
+            vec![with_loss(1.2, 1), with_loss(1.0, 2), with_loss(2.01, 3), with_loss(f32::NAN, 4), with_loss(1.99, 5)];
+        let (near, far) = split_behind(&warm, 1.0);
+        assert_eq!(near.iter().map(|c| c.n_p).collect::<Vec<_>>(), [1, 2, 4, 5]);
+        assert_eq!(far.iter().map(|c| c.n_p).collect::<Vec<_>>(), [3]);
+        let (near, far) = split_behind(&warm, 0.5);
+        assert_eq!(near.iter().map(|c| c.n_p).collect::<Vec<_>>(), [1, 2, 4]);
+        assert_eq!(far.iter().map(|c| c.n_p).collect::<Vec<_>>(), [3, 5]);
+        assert_eq!(split_behind(&[], 1.0), (vec![], vec![]));
     }
 
     #[test]
