@@ -44,6 +44,7 @@ pub mod demo;
 pub(crate) mod display_range;
 pub mod eval;
 mod evaluator;
+mod family_level;
 mod finish;
 mod hair_extra;
 mod held_out;
@@ -356,6 +357,9 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         .flatten();
     if cloth != before {
         let after = HeldOut::new(traded.as_ref().unwrap_or(&ev), r.seed).loss(&cloth);
+        if std::env::var_os("WOVEN_DEBUG_LEVEL").is_some() {
+            eprintln!("exposure trade: held-out {:?} -> {after}", held_loss);
+        }
         if after > held_loss.unwrap_or_else(|| held.loss(&before)) {
             (cloth, traded) = (before, None);
         }
@@ -377,6 +381,37 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         let hdr = refine::trade_exposure(&hdr, &mut cloth, lm, stop).unwrap_or(hdr);
         stages.mark("display range", &hdr, Some(&cloth));
         hdr
+    };
+    // A yarn family left with a body colour at its bound while the loss asks for more light from
+    // it: a level step along the family's colours, the exposure taking what would pass 1, kept
+    // where the loss falls by a margin and the held-out samples of both exposures agree
+    // (`family_level`).
+    let ev = if photo && !joint.stopped && opts.finish.family_levels {
+        let stepped = family_level::level_step(&ev, &cloth, r.px_per_cell);
+        if std::env::var_os("WOVEN_DEBUG_LEVEL").is_some() {
+            eprintln!("family levels: {:?}", stepped.as_ref().map(|s| &s.2));
+        }
+        let ev = match stepped {
+            Some((next, raised, _)) => {
+                let at = raised.as_ref().unwrap_or(&ev);
+                let before = HeldOut::new(&ev, r.seed).loss(&cloth);
+                let after = HeldOut::new(at, r.seed).loss(&next);
+                if std::env::var_os("WOVEN_DEBUG_LEVEL").is_some() {
+                    eprintln!("family levels: held-out {before} -> {after}");
+                }
+                if after <= before {
+                    cloth = next;
+                    raised.unwrap_or(ev)
+                } else {
+                    ev
+                }
+            }
+            None => ev,
+        };
+        stages.mark("family levels", &ev, Some(&cloth));
+        ev
+    } else {
+        ev
     };
     if !joint.stopped && opts.finish.svcolor > 0 {
         cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));
