@@ -355,13 +355,14 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut traded = (!joint.stopped && photo)
         .then(|| refine::trade_exposure(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
         .flatten();
+    // The held-out loss of `cloth` under the evaluator as it stands, while that is `held`'s.
+    let mut held_at_ev = held_loss;
     if cloth != before {
         let after = HeldOut::new(traded.as_ref().unwrap_or(&ev), r.seed).loss(&cloth);
-        if std::env::var_os("WOVEN_DEBUG_LEVEL").is_some() {
-            eprintln!("exposure trade: held-out {:?} -> {after}", held_loss);
-        }
         if after > held_loss.unwrap_or_else(|| held.loss(&before)) {
             (cloth, traded) = (before, None);
+        } else {
+            held_at_ev = traded.is_none().then_some(after);
         }
     }
     let ev = traded.unwrap_or(ev);
@@ -379,6 +380,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         let hdr = range.evaluator(&ev);
         refine::polish(&hdr, &mut cloth, 0, lm, stop);
         let hdr = refine::trade_exposure(&hdr, &mut cloth, lm, stop).unwrap_or(hdr);
+        held_at_ev = None;
         stages.mark("display range", &hdr, Some(&cloth));
         hdr
     };
@@ -387,18 +389,11 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // where the loss falls by a margin and the held-out samples of both exposures agree
     // (`family_level`).
     let ev = if photo && !joint.stopped && opts.finish.family_levels {
-        let stepped = family_level::level_step(&ev, &cloth, r.px_per_cell);
-        if std::env::var_os("WOVEN_DEBUG_LEVEL").is_some() {
-            eprintln!("family levels: {:?}", stepped.as_ref().map(|s| &s.2));
-        }
-        let ev = match stepped {
+        let ev = match family_level::level_step(&ev, &cloth, r.px_per_cell) {
             Some((next, raised, _)) => {
                 let at = raised.as_ref().unwrap_or(&ev);
-                let before = HeldOut::new(&ev, r.seed).loss(&cloth);
+                let before = held_at_ev.unwrap_or_else(|| HeldOut::new(&ev, r.seed).loss(&cloth));
                 let after = HeldOut::new(at, r.seed).loss(&next);
-                if std::env::var_os("WOVEN_DEBUG_LEVEL").is_some() {
-                    eprintln!("family levels: held-out {before} -> {after}");
-                }
                 if after <= before {
                     cloth = next;
                     raised.unwrap_or(ev)

@@ -171,16 +171,7 @@ pub(super) fn trade_exposure(
         for c in [&mut a.r_b_e, &mut a.r_b_a, &mut a.s_b_e, &mut a.s_b_a, &mut a.r_s, &mut a.t_s, &mut a.t_s_y] {
             *c = c.map(|v| v / EXPOSURE_STEP);
         }
-        let rec = next.record(&cand);
-        let dbg = std::env::var_os("WOVEN_DEBUG_LEVEL").is_some();
-        let l_pre = if dbg { total_loss(next.loss_of(&rec, &cand.appearance), &cand.appearance.to_vec()) } else { 0.0 };
-        let l = lm_appearance(&next, &rec, &mut cand, iters, stop);
-        if dbg {
-            eprintln!(
-                "trade_exposure: exposure {} best {best_loss} step pre-LM {l_pre} post-LM {l}",
-                next.scene().exposure
-            );
-        }
+        let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
         // A NaN loss is not below: the step is not kept.
         if l.partial_cmp(&best_loss) != Some(std::cmp::Ordering::Less) {
             break;
