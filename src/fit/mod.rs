@@ -44,6 +44,7 @@ pub mod demo;
 pub(crate) mod display_range;
 pub mod eval;
 mod evaluator;
+mod family_level;
 mod finish;
 mod hair_extra;
 mod held_out;
@@ -354,10 +355,14 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut traded = (!joint.stopped && photo)
         .then(|| refine::trade_exposure(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
         .flatten();
+    // The held-out loss of `cloth` under the evaluator as it stands, while that is `held`'s.
+    let mut held_at_ev = held_loss;
     if cloth != before {
         let after = HeldOut::new(traded.as_ref().unwrap_or(&ev), r.seed).loss(&cloth);
         if after > held_loss.unwrap_or_else(|| held.loss(&before)) {
             (cloth, traded) = (before, None);
+        } else {
+            held_at_ev = traded.is_none().then_some(after);
         }
     }
     let ev = traded.unwrap_or(ev);
@@ -375,8 +380,33 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         let hdr = range.evaluator(&ev);
         refine::polish(&hdr, &mut cloth, 0, lm, stop);
         let hdr = refine::trade_exposure(&hdr, &mut cloth, lm, stop).unwrap_or(hdr);
+        held_at_ev = None;
         stages.mark("display range", &hdr, Some(&cloth));
         hdr
+    };
+    // A yarn family left with a body colour at its bound while the loss asks for more light from
+    // it: a level step along the family's colours, the exposure taking what would pass 1, kept
+    // where the loss falls by a margin and the held-out samples of both exposures agree
+    // (`family_level`).
+    let ev = if photo && !joint.stopped && opts.finish.family_levels {
+        let ev = match family_level::level_step(&ev, &cloth, r.px_per_cell) {
+            Some((next, raised, _)) => {
+                let at = raised.as_ref().unwrap_or(&ev);
+                let before = held_at_ev.unwrap_or_else(|| HeldOut::new(&ev, r.seed).loss(&cloth));
+                let after = HeldOut::new(at, r.seed).loss(&next);
+                if after <= before {
+                    cloth = next;
+                    raised.unwrap_or(ev)
+                } else {
+                    ev
+                }
+            }
+            None => ev,
+        };
+        stages.mark("family levels", &ev, Some(&cloth));
+        ev
+    } else {
+        ev
     };
     if !joint.stopped && opts.finish.svcolor > 0 {
         cloth.body_texture = Some(texture::fit_texture(&ev, &cloth, opts.finish.svcolor, 60));

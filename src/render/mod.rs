@@ -309,6 +309,20 @@ impl PathCache {
         (cov, rad)
     }
 
+    /// The exposure the record's shading multiplies by.
+    pub fn exposure(&self) -> f32 {
+        self.exposure
+    }
+
+    /// Shade this record at another exposure from now on. The shading is linear in the
+    /// exposure, so this is the record a trace at `exposure` makes, up to the one place the
+    /// exposure enters the trace: a light seen directly through a gap, clipped per sample to the
+    /// display white `1/exposure` ([`integrator`]). Used to score an exposure trade without a
+    /// re-trace (`fit::family_level`).
+    pub fn set_exposure(&mut self, exposure: f32) {
+        self.exposure = exposure;
+    }
+
     /// Total recorded vertices (memory use indicator).
     pub fn vertex_count(&self) -> usize {
         self.rows.iter().map(|r| r.verts.len()).sum()
