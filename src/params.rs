@@ -420,6 +420,22 @@ pub const NP_RANGE: (u32, u32) = (PARAMS[param::N_P].min as u32, PARAMS[param::N
 pub const NF_RANGE: (u32, u32) = (PARAMS[param::N_F].min as u32, PARAMS[param::N_F].max as u32);
 
 impl Appearance {
+    /// The colours that scale the light the cloth sends back: both families' body colours
+    /// (`R^B`, `S^B`) and the specular ones (`R^S`, `T^S`, `T^S_y`). Dividing every one of them by
+    /// a factor and multiplying the exposure by it trades the one for the other (the exposure
+    /// trade of the fit's finish, its family level step).
+    pub fn light_colours_mut(&mut self) -> [&mut [f32; 3]; 7] {
+        [
+            &mut self.r_b_e,
+            &mut self.r_b_a,
+            &mut self.s_b_e,
+            &mut self.s_b_a,
+            &mut self.r_s,
+            &mut self.t_s,
+            &mut self.t_s_y,
+        ]
+    }
+
     /// Flatten to the order of [`PARAMS`] (its first [`N_APPEARANCE`] entries).
     pub fn to_vec(&self) -> [f32; N_APPEARANCE] {
         use param::*;

@@ -24,6 +24,7 @@
 
 use super::colours::yarn_pixels;
 use super::evaluator::{total_loss, Evaluator};
+use super::refine::AT_BOUND;
 use super::target::yarn_mean_where;
 use crate::image_io::Image;
 use crate::params::{Appearance, ClothParams};
@@ -50,8 +51,6 @@ const MEAN_FRACTIONS: [f32; 2] = [0.5, 1.0];
 /// session 27's probe found the loss's minimum (×1.05 and ×1.10 on m2626_12 and m2626_06), and one
 /// step past it in case the bound held the family further back.
 const BOUND_LADDER: [f32; 3] = [1.05, 1.10, 1.20];
-/// A body colour channel at or above this sits at the top of its range (as `refine::AT_BOUND`).
-const AT_BOUND: f32 = 0.99;
 /// Relative drop of the loss (MSE + barrier, on the fit's own samples) a step must give to be
 /// kept: the losses compared are re-shadings of one record (common random numbers), so a
 /// difference of a fraction of a percent is the model's, not the noise's; the gains the step is
@@ -93,8 +92,7 @@ pub(crate) fn stepped(a: &Appearance, gains: &Gains) -> (Appearance, f32) {
     }
     let top = [out.r_b_e, out.r_b_a, out.s_b_e, out.s_b_a].iter().flatten().fold(1.0f32, |m, &v| m.max(v));
     if top > 1.0 && top.is_finite() {
-        let o = &mut out;
-        for col in [&mut o.r_b_e, &mut o.r_b_a, &mut o.s_b_e, &mut o.s_b_a, &mut o.r_s, &mut o.t_s, &mut o.t_s_y] {
+        for col in out.light_colours_mut() {
             *col = col.map(|v| (v / top).min(1.0));
         }
         (out, top)

@@ -121,7 +121,7 @@ const EXPOSURE_STEP: f32 = 1.25;
 /// Most steps of [`trade_exposure`] (1.25⁴ ≈ 2.4 times the exposure it started from).
 const EXPOSURE_STEPS: usize = 4;
 /// A body colour channel at or above this sits at the top of its range (Table 1: [0, 1]).
-const AT_BOUND: f32 = 0.99;
+pub(super) const AT_BOUND: f32 = 0.99;
 
 /// Whether a body colour (`R^B` or `S^B` of either family) sits at the top of its range in some
 /// channel.
@@ -167,8 +167,7 @@ pub(super) fn trade_exposure(
         let scene = crate::scene::Scene { exposure: at.scene().exposure * EXPOSURE_STEP, ..at.scene().clone() };
         let next = ev.sibling(scene, ev.target().clone(), ev.block());
         let mut cand = cloth.clone();
-        let a = &mut cand.appearance;
-        for c in [&mut a.r_b_e, &mut a.r_b_a, &mut a.s_b_e, &mut a.s_b_a, &mut a.r_s, &mut a.t_s, &mut a.t_s_y] {
+        for c in cand.appearance.light_colours_mut() {
             *c = c.map(|v| v / EXPOSURE_STEP);
         }
         let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
