@@ -56,6 +56,7 @@ pub mod output;
 mod parsimony;
 mod preestimate;
 mod proposal;
+mod race;
 pub mod real;
 mod refine;
 pub mod renders;

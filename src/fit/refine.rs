@@ -377,20 +377,35 @@ pub(super) fn polish(
     lm_iters: usize,
     stop: &AtomicBool,
 ) -> f32 {
-    let mut cache = ev.record(cloth);
-    let mut loss = lm_appearance(ev, &cache, cloth, lm_iters, stop);
+    let mut loss = lm_appearance(ev, &ev.record(cloth), cloth, lm_iters, stop);
     for _ in 0..rounds {
         if stop.load(Ordering::Relaxed) {
             break;
         }
-        // The step's own record of the state it moved to: the same bits as a re-trace.
-        let (l, moved) = radius_newton(ev, cloth, loss, RADIUS_H);
-        loss = l;
-        let Some(record) = moved else { break };
-        cache = record;
-        loss = lm_appearance(ev, &cache, cloth, lm_iters, stop);
+        match polish_round(ev, cloth, loss, lm_iters, stop) {
+            Some(l) => loss = l,
+            None => break,
+        }
     }
     loss
+}
+
+/// One radius round of [`polish`] from `cloth` at its polished loss `loss`: a Newton step of the
+/// radii ([`radius_newton`]), then, where it moved, the appearance descent on the step's own
+/// record of the state it moved to (the same bits as a re-trace). Returns the new loss, or `None`
+/// where the step stayed (the polish has settled: `cloth` and its loss are unchanged, and a
+/// further round would probe the same radii again). A round needs nothing of the rounds before it
+/// but the cloth and its loss, so contenders can be polished a round at a time in turn
+/// (`race`).
+pub(super) fn polish_round(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    loss: f32,
+    lm_iters: usize,
+    stop: &AtomicBool,
+) -> Option<f32> {
+    let (_, moved) = radius_newton(ev, cloth, loss, RADIUS_H);
+    moved.map(|record| lm_appearance(ev, &record, cloth, lm_iters, stop))
 }
 
 /// Appearance scalars that shape the lobes and the self-shadowing rather than set a colour
