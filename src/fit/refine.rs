@@ -540,6 +540,33 @@ mod tests {
     }
 
     #[test]
+    fn rounds_taken_one_at_a_time_are_the_polish_bit_for_bit() {
+        let truth = crate::fit::demo::demo_cloth();
+        let ev = noise_free(&truth);
+        let stop = AtomicBool::new(false);
+        let mut start = truth.clone();
+        (start.r_e, start.r_a) = (truth.r_e - 0.4, truth.r_a + 0.3);
+        start.appearance.r_b_e = [0.3; 3];
+        let mut whole = start.clone();
+        let l_whole = polish(&ev, &mut whole, 3, 4, &stop);
+        let mut turns = start.clone();
+        let mut loss = polish(&ev, &mut turns, 0, 4, &stop);
+        let mut moved = 0;
+        for _ in 0..3 {
+            let Some(l) = polish_round(&ev, &mut turns, loss, 4, &stop) else { break };
+            assert!(l < loss, "a round that moves lowers the loss");
+            (loss, moved) = (l, moved + 1);
+        }
+        assert!(moved > 0, "the radii 0.3–0.4 off move");
+        assert_eq!(loss.to_bits(), l_whole.to_bits());
+        assert_eq!(turns, whole);
+        // At the truth the step stays: no round, the cloth unchanged.
+        let mut at_truth = truth.clone();
+        assert_eq!(polish_round(&ev, &mut at_truth, 0.0, 4, &stop), None);
+        assert_eq!(at_truth, truth);
+    }
+
+    #[test]
     fn radius_newton_moves_both_radii_towards_the_target() {
         let truth = crate::fit::demo::demo_cloth();
         let ev = noise_free(&truth);
