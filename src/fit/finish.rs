@@ -13,7 +13,7 @@ use super::options::FinishOptions;
 use super::parsimony::PatternChoice;
 use super::preestimate::PreEstimate;
 use super::stages::StageClock;
-use super::{refine, Stage};
+use super::{race, refine, Stage};
 use crate::params::{ClothParams, NF_RANGE, NP_RANGE};
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -109,8 +109,12 @@ fn finish(
 }
 
 /// The run-off of the finish: the best-scored rivals (distinct patterns, at most [`RUNOFF`])
-/// whose score is a close call against the leader's (`PatternChoice::close_call`) get [`RUNOFF_ROUNDS`] more rounds of radius steps and appearance descent, and the lowest score
-/// after that wins. The rivals arrive unequally converged: the joint runs' best states had their
+/// whose score is a close call against the leader's (`PatternChoice::close_call`) get an
+/// appearance descent and [`RUNOFF_ROUNDS`] more rounds of radius steps and appearance descent,
+/// taken in turns, and the lowest score after that wins. A finalist whose score after a step is
+/// no longer a close call against the leader's takes no more steps (`race`: successive
+/// elimination; the winner is the one the rounds run to the end would pick unless a finalist
+/// that left would have gained more than the margin on the leader). The rivals arrive unequally converged: the joint runs' best states had their
 /// radii and ply counts moved for a hundred iterations on this very view, the warmed-up
 /// candidates only on the pre-estimation's. A few radius rounds lower a warmed-up candidate's
 /// loss by up to ~10 % on hairy photos (FabricNET W116: a 2/2 twill 11 % behind a plain before
@@ -134,14 +138,25 @@ fn runoff(
             finalists.push(s);
         }
     }
-    for f in finalists.iter_mut() {
-        let mut c = f.2.clone();
-        let l = refine::polish(ev, &mut c, RUNOFF_ROUNDS, lm_iters, stop);
-        if l < f.1 {
-            *f = (choice.score(l, &c), l, c);
+    // Each finalist as it came (score, loss, cloth) beside the state its run-off polish reached
+    // (loss, cloth); the polished state counts where its loss fell below the one it came with.
+    type Entry = ((f64, f32, ClothParams), (f32, ClothParams));
+    let counted =
+        |e: &Entry| if e.1 .0 < e.0 .1 { (choice.score(e.1 .0, &e.1 .1), e.1 .0, e.1 .1.clone()) } else { e.0.clone() };
+    let entrants: Vec<(f64, Entry)> = finalists.into_iter().map(|f| (f.0, (f.clone(), (f.1, f.2)))).collect();
+    // Step 0 the appearance descent on a fresh record, steps 1.. the radius rounds; a finalist
+    // that falls out of the close call against the leader takes no more (`race`).
+    let advance = |step: usize, e: &mut Entry| {
+        let (loss, cloth) = &mut e.1;
+        if step == 0 {
+            *loss = refine::polish(ev, cloth, 0, lm_iters, stop);
+        } else {
+            *loss = refine::polish_round(ev, cloth, *loss, lm_iters, stop)?;
         }
-    }
-    finalists.into_iter().min_by(|a, b| a.0.total_cmp(&b.0))
+        Some(counted(e).0)
+    };
+    let lanes = race::race(entrants, 1 + RUNOFF_ROUNDS, advance, |s, lead| choice.close_call(s, lead), stop);
+    race::winner(&lanes).map(|k| counted(&lanes[k].item))
 }
 
 /// The rival the run-off chose against the joint runs' own best (`incumbent`, both polished on

@@ -56,6 +56,7 @@ pub mod output;
 mod parsimony;
 mod preestimate;
 mod proposal;
+mod race;
 pub mod real;
 mod refine;
 pub mod renders;
@@ -457,8 +458,10 @@ const READING_VIEW_ROUNDS: usize = 2;
 /// inverted, the families' colours and radii swapped: `candidates::inverted_twin`; the
 /// pre-estimation's own polished twin where it kept one). Each reading gets its own view, then the
 /// same polish at that view (`READING_VIEW_ROUNDS` radius rounds, `iters` appearance
-/// iterations); the lowest `PatternChoice` score wins (the loss, penalised for cells no named
-/// weave explains, the finish's criterion). When a reading other than the pre-estimate wins, it
+/// iterations), the readings taken in turns, a reading whose score after a step is no longer a
+/// close call against the leader's (`PatternChoice::close_call`, the run-off's margin) taking no
+/// more steps (`race`); the lowest `PatternChoice` score wins (the loss, penalised for cells no
+/// named weave explains, the finish's criterion). When a reading other than the pre-estimate wins, it
 /// becomes the initial state and first start, and the pre-estimate goes to the warmed rivals.
 /// Returns the winner's view (shift, blur σ).
 ///
@@ -510,23 +513,31 @@ fn reading_view_contest(
     if readings.len() == 1 {
         return own_view;
     }
-    let mut best: Option<(f64, View, ClothParams)> = None;
-    for (k, reading) in readings.iter().enumerate() {
+    // Each reading with its own view, the evaluator through that view and its polished loss.
+    let mut entrants: Vec<(f64, (View, Evaluator, ClothParams, f32))> = Vec::new();
+    for (k, reading) in readings.into_iter().enumerate() {
         if stop.load(std::sync::atomic::Ordering::Relaxed) {
             break;
         }
-        let view @ ((dx, dy), blur) = if k == 0 { own_view } else { preestimate::fit_view(ev0, reading, blur0) };
+        let view @ ((dx, dy), blur) = if k == 0 { own_view } else { preestimate::fit_view(ev0, &reading, blur0) };
         let shifted = target::shift_periodic(ev0.target(), dx, dy);
         let ev = ev0.sibling(ev0.scene().clone(), shifted, ev0.block()).with_blur(blur);
-        let mut c = reading.clone();
-        let l = refine::polish(&ev, &mut c, READING_VIEW_ROUNDS, iters, stop);
-        let score = choice.score(l, &c);
-        if best.as_ref().is_none_or(|b| score < b.0) {
-            best = Some((score, view, c));
-        }
+        entrants.push((f64::INFINITY, (view, ev, reading, f32::INFINITY)));
     }
+    // Step 0 the appearance descent, steps 1.. the radius rounds, taken in turns: a reading that
+    // falls out of the close call against the leader takes no more (`race`).
+    let advance = |step: usize, (_, ev, c, loss): &mut (View, Evaluator, ClothParams, f32)| {
+        if step == 0 {
+            *loss = refine::polish(ev, c, 0, iters, stop);
+        } else {
+            *loss = refine::polish_round(ev, c, *loss, iters, stop)?;
+        }
+        Some(choice.score(*loss, c))
+    };
+    let mut lanes = race::race(entrants, 1 + READING_VIEW_ROUNDS, advance, |s, lead| choice.close_call(s, lead), stop);
+    let best = race::winner(&lanes).map(|k| lanes.swap_remove(k).item);
     match best {
-        Some((_, view, won)) if won.pattern != pre.initial.pattern => {
+        Some((view, _, won, _)) if won.pattern != pre.initial.pattern => {
             let lost = std::mem::replace(&mut pre.initial, won.clone());
             match pre.starts.first_mut() {
                 Some(first) => *first = won,

@@ -377,20 +377,35 @@ pub(super) fn polish(
     lm_iters: usize,
     stop: &AtomicBool,
 ) -> f32 {
-    let mut cache = ev.record(cloth);
-    let mut loss = lm_appearance(ev, &cache, cloth, lm_iters, stop);
+    let mut loss = lm_appearance(ev, &ev.record(cloth), cloth, lm_iters, stop);
     for _ in 0..rounds {
         if stop.load(Ordering::Relaxed) {
             break;
         }
-        // The step's own record of the state it moved to: the same bits as a re-trace.
-        let (l, moved) = radius_newton(ev, cloth, loss, RADIUS_H);
-        loss = l;
-        let Some(record) = moved else { break };
-        cache = record;
-        loss = lm_appearance(ev, &cache, cloth, lm_iters, stop);
+        match polish_round(ev, cloth, loss, lm_iters, stop) {
+            Some(l) => loss = l,
+            None => break,
+        }
     }
     loss
+}
+
+/// One radius round of [`polish`] from `cloth` at its polished loss `loss`: a Newton step of the
+/// radii ([`radius_newton`]), then, where it moved, the appearance descent on the step's own
+/// record of the state it moved to (the same bits as a re-trace). Returns the new loss, or `None`
+/// where the step stayed (the polish has settled: `cloth` and its loss are unchanged, and a
+/// further round would probe the same radii again). A round needs nothing of the rounds before it
+/// but the cloth and its loss, so contenders can be polished a round at a time in turn
+/// (`race`).
+pub(super) fn polish_round(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    loss: f32,
+    lm_iters: usize,
+    stop: &AtomicBool,
+) -> Option<f32> {
+    let (_, moved) = radius_newton(ev, cloth, loss, RADIUS_H);
+    moved.map(|record| lm_appearance(ev, &record, cloth, lm_iters, stop))
 }
 
 /// Appearance scalars that shape the lobes and the self-shadowing rather than set a colour
@@ -522,6 +537,33 @@ mod tests {
         polish(&ev, &mut c, 1, 0, &AtomicBool::new(false));
         assert_ne!((c.r_e, c.r_a), (truth.r_e - 0.3, truth.r_a + 0.3), "the round moved");
         assert_eq!(ev.traces().count() - before, 6);
+    }
+
+    #[test]
+    fn rounds_taken_one_at_a_time_are_the_polish_bit_for_bit() {
+        let truth = crate::fit::demo::demo_cloth();
+        let ev = noise_free(&truth);
+        let stop = AtomicBool::new(false);
+        let mut start = truth.clone();
+        (start.r_e, start.r_a) = (truth.r_e - 0.4, truth.r_a + 0.3);
+        start.appearance.r_b_e = [0.3; 3];
+        let mut whole = start.clone();
+        let l_whole = polish(&ev, &mut whole, 3, 4, &stop);
+        let mut turns = start.clone();
+        let mut loss = polish(&ev, &mut turns, 0, 4, &stop);
+        let mut moved = 0;
+        for _ in 0..3 {
+            let Some(l) = polish_round(&ev, &mut turns, loss, 4, &stop) else { break };
+            assert!(l < loss, "a round that moves lowers the loss");
+            (loss, moved) = (l, moved + 1);
+        }
+        assert!(moved > 0, "the radii 0.3–0.4 off move");
+        assert_eq!(loss.to_bits(), l_whole.to_bits());
+        assert_eq!(turns, whole);
+        // At the truth the step stays: no round, the cloth unchanged.
+        let mut at_truth = truth.clone();
+        assert_eq!(polish_round(&ev, &mut at_truth, 0.0, 4, &stop), None);
+        assert_eq!(at_truth, truth);
     }
 
     #[test]
