@@ -424,7 +424,8 @@ impl PlyModel {
             }
         }
         let fib = fiber_table(self.n_f);
-        let pert = CrossSection::lookup(&fib.pert, theta_f);
+        // The fibre's normal turned from the ply's, scaled by the yarn's relief (`YarnShape::relief`).
+        let pert = CrossSection::lookup(&fib.pert, theta_f) * yarn.relief;
         let ao_f = CrossSection::lookup(&fib.ao, theta_f);
         let rf = CrossSection::lookup(&fib.centre_r, theta_f);
         let circ = ply_t.cross(np);
@@ -502,6 +503,36 @@ mod tests {
             }
             assert!(hits > 50, "n_p={n_p}: only {hits} hits");
         }
+    }
+
+    /// Without fibre relief a single-ply yarn shades with its tube's own normal (the outward
+    /// radial direction at the hit); with the full relief the fibres turn it away.
+    #[test]
+    fn a_single_ply_without_relief_shades_as_a_smooth_tube() {
+        use crate::geometry::yarn::YarnShape;
+        let turn = |relief: f32| -> (f32, usize) {
+            let shape = YarnShape { relief, ..Default::default() };
+            let set = YarnSet::with_shape(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0, shape);
+            let y = &set.yarns[0];
+            let m = PlyModel { n_p: 1, n_f: 30 };
+            let (mut worst, mut hits) = (0.0f32, 0);
+            for k in 0..100 {
+                let f = y.frame(k as f32 * 0.2);
+                let q = f.c + f.ey * 6.0 + f.ex * ((k % 9) as f32 - 4.0) * 0.3;
+                if let Some(h) = m.map(y, q, -f.ey, true) {
+                    let p = q - f.ey * h.t;
+                    let radial = ((p - f.c) - f.t * (p - f.c).dot(f.t)).normalize();
+                    worst = worst.max(h.normal.angle_between(radial));
+                    hits += 1;
+                }
+            }
+            (worst, hits)
+        };
+        let (smooth, hits) = turn(0.0);
+        assert!(hits > 50, "only {hits} hits");
+        assert!(smooth < 0.02, "smooth tube: normal {smooth} rad off the radial direction");
+        let (rough, _) = turn(1.0);
+        assert!(rough > 0.5, "with fibre relief the normal turns by {rough} rad at most");
     }
 
     /// The early-exit test of a shadow ray against the plies answers what the full intersection
