@@ -55,7 +55,14 @@ pub struct YarnShape {
     /// of the model cannot show the one sharp highlight along its crown that a smooth, glossy
     /// tube (a filament yarn, another renderer's plastic tube) shows under a small light: the fit
     /// explained it as a broad, tinted specular lobe instead (docs/benchmarks.md, session 29).
+    /// Left out of files at its default, so that files without it read as before.
+    #[serde(skip_serializing_if = "full_relief")]
     pub relief: f32,
+}
+
+/// True for the default relief of [`YarnShape::relief`] (1: every fibre's own normal).
+fn full_relief(relief: &f32) -> bool {
+    *relief == 1.0
 }
 
 impl Default for YarnShape {
