@@ -534,6 +534,8 @@ impl ClothParams {
         let (c, a) = (YarnShape::CROSSING_RANGE, YarnShape::ASPECT_RANGE);
         check_range("shape.crossing", self.shape.crossing as f64, c.0 as f64, c.1 as f64)?;
         check_range("shape.aspect", self.shape.aspect as f64, a.0 as f64, a.1 as f64)?;
+        let rl = YarnShape::RELIEF_RANGE;
+        check_range("shape.relief", self.shape.relief as f64, rl.0 as f64, rl.1 as f64)?;
         // Any arc length is a twist origin (the twist is periodic), within the f32 precision of a
         // repeat's arc length.
         for (field, x) in
@@ -816,6 +818,13 @@ mod tests {
         assert!(floating.cloth.validate().is_ok());
         let e = ParamFile::from_json(&floating.to_json()).unwrap_err().to_string();
         assert!(e.contains("pattern") && e.contains("not woven"), "{e}");
+        // A smooth yarn's relief travels through a file; one outside [0, 1] is refused.
+        let mut smooth = p.clone();
+        smooth.cloth.shape.relief = 0.0;
+        assert_eq!(ParamFile::from_json(&smooth.to_json()).unwrap(), smooth);
+        smooth.cloth.shape.relief = 1.5;
+        let e = smooth.cloth.validate().unwrap_err().to_string();
+        assert!(e.contains("shape.relief"), "{e}");
     }
 
     #[test]

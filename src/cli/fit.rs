@@ -125,6 +125,11 @@ pub struct FitArgs {
     /// the cloth normal, and its front light tilted, where that lowers the loss).
     #[arg(long)]
     pub fixed_light: bool,
+    /// Keep the fibres' relief on every yarn (by default, on a prepared photo, the yarns are also
+    /// tried as smooth single plies, which show a glossy tube's sharp crown highlight, and kept
+    /// where that lowers the loss).
+    #[arg(long)]
+    pub no_smooth_yarns: bool,
     /// Leave each yarn family's colour level where the descents put it (by default, on a prepared
     /// photo, a family held at its colours' bound is given more light where the loss asks for it,
     /// the exposure taking the excess).
@@ -163,6 +168,7 @@ impl FitArgs {
         o.finish.svcolor = u32::from(self.svcolor);
         o.finish.yarn_colours = !self.uniform_colours;
         o.finish.light_direction = !self.fixed_light;
+        o.finish.smooth_yarns = !self.no_smooth_yarns;
         o.finish.family_levels = !self.no_family_levels;
         Ok(o)
     }

@@ -62,6 +62,7 @@ mod refine;
 pub mod renders;
 pub mod report;
 mod shape_extra;
+mod smooth_yarns;
 mod stages;
 pub mod target;
 mod texture;
@@ -313,6 +314,18 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         stages.mark("light", lit.as_ref().unwrap_or(&ev), Some(&cloth));
     }
     let ev = lit.unwrap_or(ev);
+    // Smooth glossy yarns (`smooth_yarns`): a single-ply yarn without fibre relief under a light
+    // scanned for it, kept where it lowers the loss by a margin; before the polish, so that the
+    // radii and the rest settle on the yarn kept.
+    let try_smooth = scan_light && opts.finish.smooth_yarns;
+    let smoothed = if try_smooth {
+        let (_, lit) = smooth_yarns::fit_smooth_yarns(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop);
+        stages.mark("smooth", lit.as_ref().unwrap_or(&ev), Some(&cloth));
+        lit
+    } else {
+        None
+    };
+    let ev = smoothed.unwrap_or(ev);
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     // The polish, the shape, the hair and the exposure trade each descend or scan on the fit's own
     // samples; each is kept only where the held-out samples agree (`held_out`: a sharp specular

@@ -231,6 +231,10 @@ pub struct FinishOptions {
     /// where that lowers the loss, before the winner's polish (`refine::fit_light_direction`):
     /// the photo's light comes from wherever it was put, the rig's from one fixed direction.
     pub light_direction: bool,
+    /// On a prepared photo, after the light direction, try the yarns as smooth single plies
+    /// without fibre relief under a light scanned for them, kept where that lowers the loss by a
+    /// margin (`smooth_yarns`: the sharp crown highlight of a glossy tube).
+    pub smooth_yarns: bool,
     /// On a prepared photo, after the last descent, step a yarn family's body colours along their
     /// level (the exposure taking what would pass 1) where that lowers the loss by a margin and the
     /// held-out samples agree (`family_level`: a bright family held at its colours' bound).
@@ -246,6 +250,7 @@ impl Default for FinishOptions {
             svcolor: 0,
             yarn_colours: true,
             light_direction: true,
+            smooth_yarns: true,
             family_levels: true,
         }
     }

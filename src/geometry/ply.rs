@@ -424,7 +424,8 @@ impl PlyModel {
             }
         }
         let fib = fiber_table(self.n_f);
-        let pert = CrossSection::lookup(&fib.pert, theta_f);
+        // The fibre's normal turned from the ply's, scaled by the yarn's relief (`YarnShape::relief`).
+        let pert = CrossSection::lookup(&fib.pert, theta_f) * yarn.relief;
         let ao_f = CrossSection::lookup(&fib.ao, theta_f);
         let rf = CrossSection::lookup(&fib.centre_r, theta_f);
         let circ = ply_t.cross(np);
@@ -501,6 +502,37 @@ mod tests {
                 }
             }
             assert!(hits > 50, "n_p={n_p}: only {hits} hits");
+        }
+    }
+
+    /// Without fibre relief the shading normal is the ply's: the same whatever the fibres
+    /// (their count sets the fibre table), while with the full relief the fibres turn it; half
+    /// the relief turns it half as far.
+    #[test]
+    fn without_relief_the_fibres_leave_the_normal_alone() {
+        use crate::geometry::yarn::YarnShape;
+        let normals = |relief: f32, n_p: u32, n_f: u32| -> Vec<Vec3> {
+            let shape = YarnShape { relief, ..Default::default() };
+            let set = YarnSet::with_shape(&WeavePattern::preset("plain").unwrap(), 4.0, 4.0, shape);
+            let y = &set.yarns[0];
+            let m = PlyModel { n_p, n_f };
+            (0..100)
+                .filter_map(|k| {
+                    let f = y.frame(k as f32 * 0.2);
+                    let q = f.c + f.ey * 4.0 + f.ex * ((k % 9) as f32 - 4.0) * 0.3;
+                    m.map(y, q, -f.ey, true).map(|h| h.normal)
+                })
+                .collect()
+        };
+        let worst = |a: &[Vec3], b: &[Vec3]| a.iter().zip(b).map(|(x, y)| x.angle_between(*y)).fold(0.0f32, f32::max);
+        for n_p in [1, 3] {
+            let (a, b) = (normals(0.0, n_p, 20), normals(0.0, n_p, 50));
+            assert!(a.len() > 50 && a.len() == b.len(), "n_p={n_p}: {} and {} hits", a.len(), b.len());
+            assert!(worst(&a, &b) < 1e-4, "n_p={n_p}: relief 0 still turns by {}", worst(&a, &b));
+            let full = worst(&normals(1.0, n_p, 20), &a);
+            let half = worst(&normals(0.5, n_p, 20), &a);
+            assert!(full > 0.5, "n_p={n_p}: the fibres turn the normal by {full} rad at most");
+            assert!((half - 0.5 * full).abs() < 0.05 * full, "n_p={n_p}: half relief {half} vs full {full}");
         }
     }
 

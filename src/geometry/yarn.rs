@@ -47,11 +47,27 @@ pub struct YarnShape {
     /// 0) the true cloth framed the model's way scored 19 dB against its prepared crop and 29 dB
     /// moved by whole cells (docs/benchmarks.md, session 19).
     pub ply_origin: [f32; 2],
+    /// Fibre relief: the share of the fibres' own curvature in the shading normal (1 by default:
+    /// each point shades with the normal of the fibre under it, §1.4; 0: with the ply's, so a
+    /// single-ply yarn shades as a smooth tube).
+    ///
+    /// Why: the fibre normal field turns the normal by up to ±90° across every fibre, so a yarn
+    /// of the model cannot show the one sharp highlight along its crown that a smooth, glossy
+    /// tube (a filament yarn, another renderer's plastic tube) shows under a small light: the fit
+    /// explained it as a broad, tinted specular lobe instead (docs/benchmarks.md, session 29).
+    /// Left out of files at its default, so that files without it read as before.
+    #[serde(skip_serializing_if = "full_relief")]
+    pub relief: f32,
+}
+
+/// True for the default relief of [`YarnShape::relief`] (1: every fibre's own normal).
+fn full_relief(relief: &f32) -> bool {
+    *relief == 1.0
 }
 
 impl Default for YarnShape {
     fn default() -> Self {
-        YarnShape { crossing: CRIMP, aspect: 1.0, ply_origin: [0.0; 2] }
+        YarnShape { crossing: CRIMP, aspect: 1.0, ply_origin: [0.0; 2], relief: 1.0 }
     }
 }
 
@@ -61,6 +77,8 @@ impl YarnShape {
     pub const CROSSING_RANGE: (f32, f32) = (0.3, 1.0);
     /// Range of [`YarnShape::aspect`]: from a ribbon three times wider than thick to round.
     pub const ASPECT_RANGE: (f32, f32) = (0.33, 1.0);
+    /// Range of [`YarnShape::relief`]: from smooth plies to the fibres' full relief.
+    pub const RELIEF_RANGE: (f32, f32) = (0.0, 1.0);
 
     /// True for the default shape (round yarns, crossing 0.7): parameter files leave it out.
     pub fn is_default(&self) -> bool {
@@ -102,6 +120,8 @@ pub struct YarnCurve {
     /// Cross-section aspect ([`YarnShape::aspect`]): the curve and the tube below live in the
     /// stretched space `z/aspect`; [`YarnCurve::to_round`] maps world points there.
     pub aspect: f32,
+    /// Fibre relief ([`YarnShape::relief`]): the scale of the fibres' normal perturbation.
+    pub relief: f32,
     /// Height profile over the length coordinate `s` (x for weft, y for warp).
     pub height: PeriodicBSpline,
     /// Length along `s` of the pattern's minimum repeat (≤ the curve's period when the tile holds
@@ -164,7 +184,19 @@ impl YarnCurve {
         }
         let offset = (index as f32 + 0.5) * PITCH;
         let arc_du = n as f32 / period;
-        YarnCurve { family, index, offset, radius, aspect: 1.0, height, repeat: period, arc_origin: 0.0, arc, arc_du }
+        YarnCurve {
+            family,
+            index,
+            offset,
+            radius,
+            aspect: 1.0,
+            relief: 1.0,
+            height,
+            repeat: period,
+            arc_origin: 0.0,
+            arc,
+            arc_du,
+        }
     }
 
     /// World point → the stretched space where this yarn's tube is round (identity when round).
@@ -362,6 +394,7 @@ impl YarnSet {
         let red = pattern.reduced();
         for y in &mut yarns {
             y.aspect = shape.aspect;
+            y.relief = shape.relief;
             y.arc_origin = shape.ply_origin[y.family.index()];
             y.repeat = match y.family {
                 Family::Weft => red.n_a() as f32 * PITCH,
