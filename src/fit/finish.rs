@@ -148,11 +148,7 @@ fn runoff(
     // that falls out of the close call against the leader takes no more (`race`).
     let advance = |step: usize, e: &mut Entry| {
         let (loss, cloth) = &mut e.1;
-        if step == 0 {
-            *loss = refine::polish(ev, cloth, 0, lm_iters, stop);
-        } else {
-            *loss = refine::polish_round(ev, cloth, *loss, lm_iters, stop)?;
-        }
+        *loss = refine::polish_step(ev, cloth, *loss, step, lm_iters, stop)?;
         Some(counted(e).0)
     };
     let lanes = race::race(entrants, 1 + RUNOFF_ROUNDS, advance, |s, lead| choice.close_call(s, lead), stop);

@@ -540,11 +540,7 @@ fn reading_view_contest(
     // Step 0 the appearance descent, steps 1.. the radius rounds, taken in turns: a reading that
     // falls out of the close call against the leader takes no more (`race`).
     let advance = |step: usize, (_, ev, c, loss): &mut (View, Evaluator, ClothParams, f32)| {
-        if step == 0 {
-            *loss = refine::polish(ev, c, 0, iters, stop);
-        } else {
-            *loss = refine::polish_round(ev, c, *loss, iters, stop)?;
-        }
+        *loss = refine::polish_step(ev, c, *loss, step, iters, stop)?;
         Some(choice.score(*loss, c))
     };
     let mut lanes = race::race(entrants, 1 + READING_VIEW_ROUNDS, advance, |s, lead| choice.close_call(s, lead), stop);

@@ -408,6 +408,25 @@ pub(super) fn polish_round(
     moved.map(|record| lm_appearance(ev, &record, cloth, lm_iters, stop))
 }
 
+/// Step `step` of [`polish`] taken alone, for contenders polished a step at a time (`race`):
+/// step 0 the appearance descent on a fresh record (`loss` unused), later steps a
+/// [`polish_round`] from the polished loss `loss`. Returns the new loss, or `None` where a round
+/// stayed (the polish has settled).
+pub(super) fn polish_step(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    loss: f32,
+    step: usize,
+    lm_iters: usize,
+    stop: &AtomicBool,
+) -> Option<f32> {
+    if step == 0 {
+        Some(polish(ev, cloth, 0, lm_iters, stop))
+    } else {
+        polish_round(ev, cloth, loss, lm_iters, stop)
+    }
+}
+
 /// Appearance scalars that shape the lobes and the self-shadowing rather than set a colour
 /// (`m_r`, `α^S`, `α^S_y`, `η^S`, `η^S_y`, `A^S`, `A^B`, `G_p`, `G_f`): the loss has separate basins
 /// in them (a sharp specular lobe is not reached by descent from a rough one).
