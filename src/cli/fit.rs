@@ -130,6 +130,11 @@ pub struct FitArgs {
     /// where that lowers the loss).
     #[arg(long)]
     pub no_smooth_yarns: bool,
+    /// Scan the photo's light direction only once the pattern is settled (by default, on a
+    /// prepared photo, it is also found before the pattern search, so that the candidates are
+    /// compared under the photo's light).
+    #[arg(long)]
+    pub no_light_first: bool,
     /// Leave each yarn family's colour level where the descents put it (by default, on a prepared
     /// photo, a family held at its colours' bound is given more light where the loss asks for it,
     /// the exposure taking the excess).
@@ -169,6 +174,7 @@ impl FitArgs {
         o.finish.yarn_colours = !self.uniform_colours;
         o.finish.light_direction = !self.fixed_light;
         o.finish.smooth_yarns = !self.no_smooth_yarns;
+        o.pre.light_first = !self.no_light_first;
         o.finish.family_levels = !self.no_family_levels;
         Ok(o)
     }

@@ -51,6 +51,7 @@ mod held_out;
 pub mod identify;
 pub mod input;
 mod joint;
+mod light_first;
 mod options;
 pub mod output;
 mod parsimony;
@@ -201,7 +202,6 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let ev0 = Evaluator::new(scene, target.image.clone(), r.loss_block).with_blur(target.blur_px).with_backdrop(
         target.prep.as_ref().is_some_and(|p| capture::estimate_capture(p).is_none_or(|c| c.shows_gaps())),
     );
-    let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     let t_prep = clock.elapsed().as_secs_f64();
     stages.mark("prep", &ev0, None);
 
@@ -209,11 +209,31 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // The cells read from the prepared photo's structure (`cell_cues`), on the crop's cell grid
     // as aligned above.
     let cues = match &target.prep {
-        Some(p) if opts.pre.enabled && opts.pre.cell_cues && st0.cells => {
+        Some(p) if opts.pre.enabled && opts.pre.cell_cues && opts.cells_free() => {
             cell_cues::read_prepared(p, n_e, n_a).and_then(|c| c.read().map(|r| (c, r)))
         }
         _ => None,
     };
+    // A photo's key light, found before the pattern search on a probe of the pattern the picture
+    // reads (`light_first`): every stage after it, the warm-up's views included, takes its rig.
+    let lit_render;
+    let (ev0, r) = match photo && opts.pre.light_first && opts.finish.light_direction {
+        true => {
+            let probe =
+                preestimate::default_cloth(cues.as_ref().map_or_else(|| pattern0.clone(), |c| c.1.pattern.clone()));
+            let lit = light_first::light_first(&ev0, &probe, opts.finish.lm_iters, &opts.control.stop);
+            stages.mark("light first", lit.as_ref().unwrap_or(&ev0), None);
+            match lit {
+                Some(ev) => {
+                    lit_render = RenderSettings { lights: ev.scene().lights.clone(), ..r.clone() };
+                    (ev, &lit_render)
+                }
+                None => (ev0, r),
+            }
+        }
+        false => (ev0, r),
+    };
+    let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     // A prepared crop starts wherever preparation put it: the warm-up's ply scans also try
     // where the twist starts (`PreOptions::twist_origin`), and so does the stage after the view.
     let twist = opts.pre.twist_origin || target.prep.is_some();
