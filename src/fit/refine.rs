@@ -244,23 +244,8 @@ pub(super) fn fit_light_direction(
     iters: usize,
     stop: &AtomicBool,
 ) -> Option<Evaluator> {
-    let at_rig = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
-    scan_light_direction(ev, cloth, at_rig, iters, stop)
-}
-
-/// [`fit_light_direction`] after its first step: `cloth` has had its appearance descent under
-/// `ev`'s own rig, which ended at the loss `at_rig`; the turned and raised rigs are tried
-/// against it. Split off so that a caller can look at `at_rig` before paying for the scan's
-/// re-traces (`smooth_yarns::fit_smooth_yarns`).
-pub(super) fn scan_light_direction(
-    ev: &Evaluator,
-    cloth: &mut ClothParams,
-    at_rig: f32,
-    iters: usize,
-    stop: &AtomicBool,
-) -> Option<Evaluator> {
     let base = ev.scene().lights.clone();
-    let mut best_loss = at_rig;
+    let mut best_loss = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
     let mut kept: Option<Evaluator> = None;
     // Re-trace under `rig`, polish the appearance, keep it when it beats the best by the margin;
     // true when kept.

@@ -23,25 +23,6 @@ use std::sync::atomic::AtomicBool;
 /// a new sample of the paths, so a smaller change is no evidence).
 pub(crate) const SMOOTH_MIN_GAIN: f32 = 0.03;
 
-/// Most the smooth yarn's loss under the fitted light (after its appearance descent, the light
-/// scan's first step) may exceed the fitted cloth's (as a fraction of it) for its light to be
-/// scanned ([`fit_smooth_yarns`]); further behind, the smooth yarn is not kept and the scan's
-/// eleven re-traces are saved. Why 1 (twice the fitted cloth's loss): to be kept, the smooth yarn
-/// must end [`SMOOTH_MIN_GAIN`] below the fitted cloth, so from twice its loss the scan would have
-/// to lower the smooth yarn's loss by a factor 2.06. The largest gain measured of a light scan for
-/// a smooth yarn is a factor 1.37 (seed-2929 scene 06: 20.70 dB at the fitted light, 22.08 dB at
-/// the best of 36 directions; docs/benchmarks.md, session 29), and the fitted light is already
-/// the best for the fibrous yarn. The model's own renders, whose yarns have their fibres' relief,
-/// lie far beyond it (session 30).
-pub(crate) const SMOOTH_SCAN_MARGIN: f32 = 1.0;
-
-/// Whether a smooth yarn whose descent under the fitted light ended at `at_rig` gets its light
-/// scanned, the fitted cloth's loss being `l0` ([`SMOOTH_SCAN_MARGIN`]). A loss that is not a
-/// number is no reason to scan: the scan compares by `<`, so from a NaN start nothing is kept.
-fn within_scan_margin(at_rig: f32, l0: f32) -> bool {
-    at_rig <= (1.0 + SMOOTH_SCAN_MARGIN) * l0
-}
-
 /// `cloth` as a smooth yarn: one ply and no fibre relief, everything else kept.
 pub(crate) fn smooth(cloth: &ClothParams) -> ClothParams {
     let mut c = cloth.clone();
@@ -59,9 +40,8 @@ fn traced_loss(ev: &Evaluator, cloth: &ClothParams) -> f32 {
 /// Levenberg–Marquardt iterations) and its light scanned as in [`refine::fit_light_direction`],
 /// kept when its loss is [`SMOOTH_MIN_GAIN`] below `cloth`'s on `ev`. Returns the evaluator under
 /// the light the smooth yarn took where it was kept and its light moved (`cloth` then holds the
-/// smooth yarn); `None` otherwise. Costs about 13 re-traces; one where the smooth yarn under the
-/// fitted light is past [`SMOOTH_SCAN_MARGIN`] (its light is not scanned), none where the yarn is
-/// already smooth.
+/// smooth yarn); `None` otherwise. Costs about 15 re-traces; none where the yarn is already
+/// smooth.
 pub(crate) fn fit_smooth_yarns(
     ev: &Evaluator,
     cloth: &mut ClothParams,
@@ -73,12 +53,8 @@ pub(crate) fn fit_smooth_yarns(
     }
     let l0 = traced_loss(ev, cloth);
     let mut cand = smooth(cloth);
-    // The light scan's first step, the smooth yarn's descent under the fitted light, taken here
-    // so that a smooth yarn far behind pays for no more (`SMOOTH_SCAN_MARGIN`).
-    let at_rig = refine::lm_appearance(ev, &ev.record(&cand), &mut cand, iters, stop);
-    let scan = within_scan_margin(at_rig, l0);
-    let lit = if scan { refine::scan_light_direction(ev, &mut cand, at_rig, iters, stop) } else { None };
-    let l = if scan { traced_loss(lit.as_ref().unwrap_or(ev), &cand) } else { f32::NAN };
+    let lit = refine::fit_light_direction(ev, &mut cand, iters, stop);
+    let l = traced_loss(lit.as_ref().unwrap_or(ev), &cand);
     // A NaN loss is not below: the smooth yarn is not kept.
     if l < (1.0 - SMOOTH_MIN_GAIN) * l0 {
         *cloth = cand;
@@ -126,33 +102,5 @@ mod tests {
         let (kept, lit) = fit_smooth_yarns(&ev, &mut cloth, 6, &stop);
         assert!(!kept && lit.is_none());
         assert_eq!(cloth, fibrous);
-    }
-
-    #[test]
-    fn a_smooth_yarn_far_behind_under_the_fitted_light_gets_no_light_scan() {
-        let stop = AtomicBool::new(false);
-        let (mut fibrous, scene) = glossy();
-        // Thick yarns of many plies with a strong, sharp lobe: their relief is most of the
-        // picture, so the smooth yarn starts far behind under the fitted light.
-        fibrous.n_p = 7;
-        let ev = Evaluator::of_own_render(&fibrous, scene);
-        let l0 = traced_loss(&ev, &fibrous);
-        let mut cand = smooth(&fibrous);
-        let at_rig = refine::lm_appearance(&ev, &ev.record(&cand), &mut cand, 6, &stop);
-        assert!(!within_scan_margin(at_rig, l0), "the smooth yarn is past the margin: {at_rig} vs {l0}");
-        let mut cloth = fibrous.clone();
-        let before = ev.traces().count();
-        let (kept, lit) = fit_smooth_yarns(&ev, &mut cloth, 6, &stop);
-        assert!(!kept && lit.is_none());
-        assert_eq!(cloth, fibrous);
-        // The fitted cloth's loss and the smooth yarn under the fitted light: two traces, none
-        // under the eleven other rigs of the light scan.
-        assert_eq!(ev.traces().count() - before, 2);
-    }
-
-    #[test]
-    fn the_scan_margin_is_twice_the_fitted_loss_and_a_nan_is_not_scanned() {
-        assert!(within_scan_margin(0.9, 1.0) && within_scan_margin(2.0, 1.0));
-        assert!(!within_scan_margin(2.01, 1.0) && !within_scan_margin(f32::NAN, 1.0));
     }
 }
