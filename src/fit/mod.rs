@@ -327,8 +327,11 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // that the radii, the twist origin and the shape are fitted under the light that was kept
     // (`refine::fit_light_direction`); a one-repeat render keeps the rig it was given.
     let scan_light = !joint.stopped && photo && opts.finish.light_direction;
+    // Where the light was turned before the pattern search, the rig as given is tried again here
+    // with the settled cloth.
+    let given = (r.lights != opts.render.lights).then_some(&opts.render.lights);
     let lit = scan_light
-        .then(|| refine::fit_light_direction(&ev, &mut cloth, opts.finish.lm_iters, &opts.control.stop))
+        .then(|| refine::fit_light_direction_from(&ev, &mut cloth, given, opts.finish.lm_iters, &opts.control.stop))
         .flatten();
     if scan_light {
         stages.mark("light", lit.as_ref().unwrap_or(&ev), Some(&cloth));

@@ -244,9 +244,34 @@ pub(super) fn fit_light_direction(
     iters: usize,
     stop: &AtomicBool,
 ) -> Option<Evaluator> {
-    let base = ev.scene().lights.clone();
+    fit_light_direction_from(ev, cloth, None, iters, stop)
+}
+
+/// [`fit_light_direction`], with `given` (a rig that an earlier scan turned away from:
+/// `light_first`) tried first: the earlier turn stands only where the cloth as it is now still
+/// beats `given` by the margin (it was taken on a cruder probe), otherwise `given` is back; the
+/// turns are then taken about whichever rig stood.
+pub(super) fn fit_light_direction_from(
+    ev: &Evaluator,
+    cloth: &mut ClothParams,
+    given: Option<&crate::scene::LightRig>,
+    iters: usize,
+    stop: &AtomicBool,
+) -> Option<Evaluator> {
     let mut best_loss = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
     let mut kept: Option<Evaluator> = None;
+    if let Some(rig) = given.filter(|r| **r != ev.scene().lights) {
+        // The earlier turn stands only where the settled cloth confirms it by the margin.
+        if !stop.load(Ordering::Relaxed) {
+            let scene = crate::scene::Scene { lights: rig.clone(), ..ev.scene().clone() };
+            let next = ev.sibling(scene, ev.target().clone(), ev.block());
+            let mut cand = cloth.clone();
+            let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+            if !(best_loss < (1.0 - LIGHT_MIN_GAIN) * l) && l.is_finite() {
+                (best_loss, *cloth, kept) = (l, cand, Some(next));
+            }
+        }
+    }
     // Re-trace under `rig`, polish the appearance, keep it when it beats the best by the margin;
     // true when kept.
     let mut try_rig = |rig: crate::scene::LightRig, best_loss: &mut f32, kept: &mut Option<Evaluator>| {
@@ -264,6 +289,7 @@ pub(super) fn fit_light_direction(
         }
         better
     };
+    let base = kept.as_ref().map_or_else(|| ev.scene().lights.clone(), |k| k.scene().lights.clone());
     let mut turn = 0.0;
     for deg in (1..).map(|k| k as f32 * RIG_TURN_STEP_DEG).take_while(|&d| d < 360.0) {
         if try_rig(turned_rig(&base, deg), &mut best_loss, &mut kept) {
