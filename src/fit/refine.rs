@@ -267,7 +267,7 @@ pub(super) fn fit_light_direction_from(
             let next = ev.sibling(scene, ev.target().clone(), ev.block());
             let mut cand = cloth.clone();
             let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
-            if !(best_loss < (1.0 - LIGHT_MIN_GAIN) * l) && l.is_finite() {
+            if l.is_finite() && (best_loss.is_nan() || best_loss >= (1.0 - LIGHT_MIN_GAIN) * l) {
                 (best_loss, *cloth, kept) = (l, cand, Some(next));
             }
         }
