@@ -260,13 +260,19 @@ pub(super) fn fit_light_direction_from(
 ) -> Option<Evaluator> {
     let mut best_loss = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
     let mut kept: Option<Evaluator> = None;
+    // `cloth` re-traced under `rig` and its appearance descended: the loss, the appearance, the
+    // evaluator.
+    let under = |rig: crate::scene::LightRig, cloth: &ClothParams| {
+        let scene = crate::scene::Scene { lights: rig, ..ev.scene().clone() };
+        let next = ev.sibling(scene, ev.target().clone(), ev.block());
+        let mut cand = cloth.clone();
+        let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+        (l, cand, next)
+    };
     if let Some(rig) = given.filter(|r| **r != ev.scene().lights) {
         // The earlier turn stands only where the settled cloth confirms it by the margin.
         if !stop.load(Ordering::Relaxed) {
-            let scene = crate::scene::Scene { lights: rig.clone(), ..ev.scene().clone() };
-            let next = ev.sibling(scene, ev.target().clone(), ev.block());
-            let mut cand = cloth.clone();
-            let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+            let (l, cand, next) = under(rig.clone(), cloth);
             if l.is_finite() && (best_loss.is_nan() || best_loss >= (1.0 - LIGHT_MIN_GAIN) * l) {
                 (best_loss, *cloth, kept) = (l, cand, Some(next));
             }
@@ -278,10 +284,7 @@ pub(super) fn fit_light_direction_from(
         if stop.load(Ordering::Relaxed) {
             return false;
         }
-        let scene = crate::scene::Scene { lights: rig, ..ev.scene().clone() };
-        let next = ev.sibling(scene, ev.target().clone(), ev.block());
-        let mut cand = cloth.clone();
-        let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+        let (l, cand, next) = under(rig, cloth);
         // A NaN loss is not below: the candidate is not kept.
         let better = l < (1.0 - LIGHT_MIN_GAIN) * *best_loss;
         if better {
