@@ -216,23 +216,17 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     };
     // A photo's key light, found before the pattern search on a probe of the pattern the picture
     // reads (`light_first`): every stage after it, the warm-up's views included, takes its rig.
-    let lit_render;
-    let (ev0, r) = match photo && opts.pre.light_first && opts.finish.light_direction {
-        true => {
+    let early = (photo && opts.pre.light_first && opts.finish.light_direction)
+        .then(|| {
             let probe =
                 preestimate::default_cloth(cues.as_ref().map_or_else(|| pattern0.clone(), |c| c.1.pattern.clone()));
             let lit = light_first::light_first(&ev0, &probe, opts.finish.lm_iters, &opts.control.stop);
             stages.mark("light first", lit.as_ref().unwrap_or(&ev0), None);
-            match lit {
-                Some(ev) => {
-                    lit_render = RenderSettings { lights: ev.scene().lights.clone(), ..r.clone() };
-                    (ev, &lit_render)
-                }
-                None => (ev0, r),
-            }
-        }
-        false => (ev0, r),
-    };
+            lit
+        })
+        .flatten();
+    let turned_first = early.is_some();
+    let ev0 = early.unwrap_or(ev0);
     let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     // A prepared crop starts wherever preparation put it: the warm-up's ply scans also try
     // where the twist starts (`PreOptions::twist_origin`), and so does the stage after the view.
@@ -329,7 +323,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let scan_light = !joint.stopped && photo && opts.finish.light_direction;
     // Where the light was turned before the pattern search, the rig as given is tried again here
     // with the settled cloth.
-    let given = (r.lights != opts.render.lights).then_some(&opts.render.lights);
+    let given = turned_first.then_some(&r.lights);
     let lit = scan_light
         .then(|| refine::fit_light_direction_from(&ev, &mut cloth, given, opts.finish.lm_iters, &opts.control.stop))
         .flatten();

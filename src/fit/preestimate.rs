@@ -93,11 +93,12 @@ pub(crate) fn pre_estimate(
     let (stop, c) = (&*st.control.stop, st.render.px_per_cell);
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
     let cp = if opts.px_per_cell == 0 { c } else { opts.px_per_cell };
-    // The pre-estimation's view of the crop at `px` pixels per cell, at the fit's exposure.
+    // The pre-estimation's view of the crop at `px` pixels per cell, at the fit's exposure and
+    // under the fit's rig (the evaluator's: `light_first` may have turned the one given).
     let view = |px: u32| {
         let scene = Scene {
             exposure: st.ev.scene().exposure,
-            ..fit_scene(n_e, n_a, px, opts.spp, st.render.seed, &st.render.lights)
+            ..fit_scene(n_e, n_a, px, opts.spp, st.render.seed, &st.ev.scene().lights)
         };
         st.ev.sibling(scene, resample(crop, n_a as u32 * px, n_e as u32 * px), st.render.loss_block)
     };
