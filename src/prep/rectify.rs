@@ -302,7 +302,10 @@ const FAR_STRAIGHTER: f64 = 4.0;
 
 /// Whether a candidate angle's boundaries (edge score `score`) are clearly straighter than those
 /// of the Radon best (`base`): `score ≥ 1.5·base` and `score ≥ MIN_EDGE_CONFIDENCE`, or
-/// `score ≥ FAR_STRAIGHTER·base` and `score ≥ MIN_EDGE_CONFIDENCE / 2`.
+/// `score ≥ FAR_STRAIGHTER·base` and `score ≥ MIN_EDGE_CONFIDENCE / 2`, or — for a candidate
+/// near the axes that the Radon energy also supports (`radon_supported`: within
+/// [`NEAR_AXIS_DEG`] of 0° and at least [`RADON_SUPPORT`] of the best's energy) —
+/// `score ≥ 1.5·base` and `score ≥ MIN_EDGE_CONFIDENCE / 2`.
 ///
 /// Why the second, relative clause: the edge score is the *weaker* axis's, and on a warp- or
 /// weft-faced weave (a satin 8 with 7 of 8 crossings one family's) the hidden family shows only at
@@ -313,10 +316,24 @@ const FAR_STRAIGHTER: f64 = 4.0;
 /// guards a choice between two credible grids; when the Radon best has no boundary lattice of its
 /// own, a candidate several times straighter is the better grid even at half the floor. Over the
 /// 133 renders and photos only m2323_12 meets the second clause and not the first (session 24).
-fn clearly_straighter(score: f64, base: f64) -> bool {
-    (score >= 1.5 * base && score >= grid::MIN_EDGE_CONFIDENCE)
-        || (score >= FAR_STRAIGHTER * base && score >= 0.5 * grid::MIN_EDGE_CONFIDENCE)
+///
+/// Why the third: a weft rib's hidden warps show only where its floats end, so its yarn axes
+/// also score below the floor, and its float ends make a brick lattice (rows shifted by half the
+/// repeat) whose diagonal, atan(1/3) on a rib 3, out-scores the yarns in Radon energy. The seed-3131
+/// weft rib 3 (m3131_11, yarns at +2.4°): the diagonal at −16° scored 0.028 on its boundaries, the
+/// yarns at +2° 0.059, 2.1× — short of the floor and of `FAR_STRAIGHTER` — while the yarns' Radon
+/// energy was 0.68 of the diagonal's. Three signals agree there (a roughly aligned close-up, a
+/// Radon peak of its own, straighter boundaries), so the relative margin suffices.
+fn clearly_straighter(score: f64, base: f64, radon_supported: bool) -> bool {
+    let floor = grid::MIN_EDGE_CONFIDENCE;
+    (score >= 1.5 * base && score >= floor)
+        || (score >= FAR_STRAIGHTER * base && score >= 0.5 * floor)
+        || (radon_supported && score >= 1.5 * base && score >= 0.5 * floor)
 }
+
+/// Fraction of the Radon best's energy (the coarse search's normalised sum) at which a candidate
+/// within [`NEAR_AXIS_DEG`] counts as Radon-supported in [`clearly_straighter`].
+const RADON_SUPPORT: f64 = 0.6;
 
 /// The coarse angle kept: the Radon best `k`, unless another local maximum of `total` within
 /// 70 % of it, or 0°, or — when `k` lies outside the window or has already lost to one of those —
@@ -334,12 +351,14 @@ fn rescore_by_edges(g: &Gray, angles: &[f64], total: &[f64], k: usize) -> EdgePi
         .collect();
     let base = edge_lattice_score(g, angles[k]);
     let mut scored: Vec<(usize, f64)> = peaks.par_iter().map(|&i| (i, edge_lattice_score(g, angles[i]))).collect();
-    let beats = |score: f64| clearly_straighter(score, base);
+    // A candidate near the axes whose Radon energy is itself close to the best's.
+    let supported = |i: usize| angles[i].abs() <= NEAR_AXIS_DEG + 1e-9 && total[i] >= RADON_SUPPORT * tmax;
+    let beats = |i: usize, score: f64| clearly_straighter(score, base, supported(i));
     // The window's whole degrees are scored only when the Radon best is in doubt: it lies outside
     // the window, or another candidate's boundaries are already clearly straighter. On an aligned
     // close-up whose Radon peak is the yarns neither holds, and the window's rotations of the
     // whole image (one per edge score) are saved.
-    if angles[k].abs() > NEAR_AXIS_DEG || scored.iter().any(|&(_, sc)| beats(sc)) {
+    if angles[k].abs() > NEAR_AXIS_DEG || scored.iter().any(|&(i, sc)| beats(i, sc)) {
         let window: Vec<usize> = (0..angles.len())
             .filter(|&i| {
                 let a = angles[i];
@@ -349,7 +368,7 @@ fn rescore_by_edges(g: &Gray, angles: &[f64], total: &[f64], k: usize) -> EdgePi
         scored.extend(window.par_iter().map(|&i| (i, edge_lattice_score(g, angles[i]))).collect::<Vec<_>>());
     }
     match scored.into_iter().max_by(|a, b| a.1.total_cmp(&b.1)) {
-        Some((best, score)) if beats(score) => EdgePick::Edges(best),
+        Some((best, score)) if beats(best, score) => EdgePick::Edges(best),
         _ => EdgePick::Radon(k),
     }
 }
@@ -643,11 +662,16 @@ mod tests {
     /// the floor replaces the Radon best however weak it is.
     #[test]
     fn a_far_straighter_candidate_replaces_a_radon_best_without_boundaries() {
-        assert!(clearly_straighter(0.047, 0.0044));
-        assert!(!clearly_straighter(0.047, 0.02), "2.3x straighter below the floor");
-        assert!(clearly_straighter(0.09, 0.05), "the session-6 rule");
-        assert!(!clearly_straighter(0.03, 0.001), "below half the floor");
-        assert!(!clearly_straighter(0.07, 0.06));
+        assert!(clearly_straighter(0.047, 0.0044, false));
+        assert!(!clearly_straighter(0.047, 0.02, false), "2.3x straighter below the floor");
+        assert!(clearly_straighter(0.09, 0.05, false), "the session-6 rule");
+        assert!(!clearly_straighter(0.03, 0.001, false), "below half the floor");
+        assert!(!clearly_straighter(0.07, 0.06, false));
+        // m3131_11: a near-axis Radon peak 2.1x straighter than the diagonal, below the floor.
+        assert!(clearly_straighter(0.059, 0.0275, true));
+        assert!(!clearly_straighter(0.059, 0.0275, false));
+        assert!(!clearly_straighter(0.035, 0.001, true), "below half the floor");
+        assert!(!clearly_straighter(0.059, 0.045, true), "less than 1.5x");
     }
 
     /// The front-lit plain render of `tests/real.rs` (the preset plain's two colours, 4 repeats
