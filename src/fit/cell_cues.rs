@@ -261,10 +261,50 @@ fn otsu_split(v: &[f64]) -> f64 {
 
 /// [`read_cues`] for a fit's prepared photo: the rectified image, the preparation's pitches, and
 /// the cell grid anchored at the crop's corner (`prep.crop`, which the fit moves along with the
-/// target, so the repeat's cells are the fit's cells).
+/// target, so the repeat's cells are the fit's cells) — put back on preparation's yarn boundaries
+/// where the fit moved it less than [`SNAP_CELLS`] of a cell off them ([`cue_origin`]).
 pub fn read_prepared(prep: &Prepared, n_e: usize, n_a: usize) -> Option<CellCues> {
     let g = Gray::from_rgb(&prep.rectified);
-    read_cues(&g, [prep.pitch_x as f64, prep.pitch_y as f64], [prep.crop.x as f64, prep.crop.y as f64], n_e, n_a)
+    read_cues(&g, [prep.pitch_x as f64, prep.pitch_y as f64], cue_origin(prep), n_e, n_a)
+}
+
+/// Largest distance, in cells, between the crop's corner and preparation's nearest yarn boundary
+/// at which [`cue_origin`] reads the cues on the boundary instead of the corner.
+pub const SNAP_CELLS: f64 = 0.25;
+
+/// The corner of the cue grid: along each axis, preparation's yarn boundary
+/// (`phase + k·pitch`) nearest to the crop's corner when it lies within [`SNAP_CELLS`] of a cell,
+/// else the corner itself.
+///
+/// Why: the fit puts the crop on the model's cell grid (`input::align_to_cells`). Where the grid
+/// read from the brightness profiles landed on the yarn centres that is a move of about half a
+/// cell, and the corner it gives is the one to read the cues on. But it also moves crops whose
+/// corner was on the boundaries already by a fifth of a cell or so (the default cloth's
+/// silhouettes matched against another renderer's yarns), and the cues, which compare cell
+/// interiors with the strips on the boundaries between them, then straddle the yarns: the
+/// seed-3232 random 3 × 6 (m3232_04) was read exactly, every cell's margin ≥ 30.8, at
+/// preparation's corner (67, 91), and with seven cells wrong at the fit's (67, 93), 0.18 cell
+/// lower. Each crop cell still reads the picture cell it overlaps most (the snap is under half a
+/// cell).
+pub fn cue_origin(prep: &Prepared) -> [f64; 2] {
+    [
+        snap_to_boundary(prep.crop.x as f64, prep.phase_x as f64, prep.pitch_x as f64),
+        snap_to_boundary(prep.crop.y as f64, prep.phase_y as f64, prep.pitch_y as f64),
+    ]
+}
+
+/// The boundary `phase + k·pitch` nearest to `corner` when it lies within [`SNAP_CELLS`] of a
+/// pitch, else `corner` (also for a pitch or phase that is not a finite positive number).
+fn snap_to_boundary(corner: f64, phase: f64, pitch: f64) -> f64 {
+    if !(pitch > 0.0 && pitch.is_finite() && phase.is_finite()) {
+        return corner;
+    }
+    let b = phase + ((corner - phase) / pitch).round() * pitch;
+    if (b - corner).abs() < SNAP_CELLS * pitch {
+        b
+    } else {
+        corner
+    }
 }
 
 impl CellCues {
@@ -408,6 +448,24 @@ pub const MIN_ENERGY_GAIN: f64 = 3.0;
 /// more (the one-colour 2/1 twills m2121_04 and m2121_08: 5.8 and 16.7). The one below, the
 /// warp-faced satin m1717_05 (0.57), is left to the loss.
 pub const FACE_GAIN_PER_CELL: f64 = 2.0;
+
+/// Least margin (the cue energy one flipped cell costs, [`CueReading::margin`]) that every cell
+/// of an irregular reading must have for [`contest`] to let it meet a named winner as it is,
+/// instead of standing in the named weave the cues rank first: three times [`MIN_ENERGY_GAIN`].
+///
+/// Measured (docs/benchmarks.md, session 31, `examples/cell_cues_diag`): over the 29 Mitsuba
+/// renders of the seed-3131 and seed-3232 sets and the shared set whose cues could be read, the
+/// eight irregular readings that were the truth had least margins of 15.7 to 85.5 and the four
+/// wrong ones (a cell or two off the truth) 0.2 to 2.5; the irregular readings of the real
+/// photos FabricNET W104, W116, W126, W067, W098 and W128, 0.0 to 3.7. The seed-3232 random
+/// 3 × 6 (m3232_04, 30.8) was read exactly while a herringbone won the fit, and the named weave
+/// the cues ranked first stood in for the reading.
+pub const CONFIDENT_MARGIN: f64 = 3.0 * MIN_ENERGY_GAIN;
+
+/// Whether every cell of `reading` has a margin of at least [`CONFIDENT_MARGIN`].
+fn confident(reading: &CueReading) -> bool {
+    reading.margin.iter().all(|&m| m >= CONFIDENT_MARGIN)
+}
 
 /// `true` when `read` is `fit` with every cell flipped, up to a shift, and `fit` is not its own
 /// inverse up to a shift (a plain, a 2/2 twill, a rib or a basket has one face).
@@ -578,8 +636,10 @@ pub(crate) fn contest(
     let (fit_named, read_named) = (named(&cloth.pattern), named(&reading.pattern));
     // An irregular reading does not overrule a named winner, but the cues still rank the named
     // weaves: the one they favour most, when they favour it over the winner by
-    // [`MIN_ENERGY_GAIN`], meets the winner by the loss instead (both named).
-    let read_pattern = if fit_named && !read_named {
+    // [`MIN_ENERGY_GAIN`], meets the winner by the loss instead (both named). A reading sure of
+    // every cell ([`confident`]) is no noisy near-miss of a named weave: it meets the winner by
+    // the loss itself.
+    let read_pattern = if fit_named && !read_named && !confident(reading) {
         let fit_energy = cues.energy(&labelling(&cloth.pattern, n_e, n_a));
         match best_named_reading(cues) {
             Some((p, e)) if p != cloth.pattern && fit_energy - e >= MIN_ENERGY_GAIN => p,
@@ -639,6 +699,34 @@ mod tests {
     fn from_image_rows(rows: &[Vec<u8>]) -> WeavePattern {
         let p: Vec<Vec<bool>> = rows.iter().rev().map(|r| r.iter().map(|&v| v == 1).collect()).collect();
         WeavePattern::from_rows_unreduced(&p).unwrap()
+    }
+
+    /// m3232_04: preparation's boundaries at 10.54 + k·14.29 px and 5.47 + k·14.18 px; the fit's
+    /// corner (67, 93) is read on the boundaries (67.70, 90.53), 0.05 and 0.17 cell away; a
+    /// corner moved half a cell (onto the yarn centres' lattice, as `align_to_cells` does where
+    /// the grid landed there) stays where the fit put it.
+    #[test]
+    fn the_cue_grid_snaps_to_preparations_boundaries_only_when_near() {
+        let (px, py) = (14.290419, 14.176409);
+        let x = snap_to_boundary(67.0, 10.541961, px);
+        let y = snap_to_boundary(93.0, 5.471865, py);
+        assert!((x - (10.541961 + 4.0 * px)).abs() < 1e-9, "{x}");
+        assert!((y - (5.471865 + 6.0 * py)).abs() < 1e-9, "{y}");
+        assert_eq!(snap_to_boundary(67.7 + 0.5 * px, 10.541961, px), 67.7 + 0.5 * px);
+        assert_eq!(snap_to_boundary(67.7 + 0.3 * px, 10.541961, px), 67.7 + 0.3 * px);
+        assert_eq!(snap_to_boundary(12.0, f64::NAN, px), 12.0);
+        assert_eq!(snap_to_boundary(12.0, 3.0, 0.0), 12.0);
+    }
+
+    /// A reading is confident only when every cell's margin reaches `CONFIDENT_MARGIN` (a cell
+    /// whose flip leaves no woven pattern counts as sure; NaN does not).
+    #[test]
+    fn a_reading_is_confident_only_when_sure_of_every_cell() {
+        let p = WeavePattern::parse("001010/100100/111011").unwrap();
+        let r = |margin: Vec<f64>| CueReading { pattern: p.clone(), margin, energy: -365.9 };
+        assert!(confident(&r(vec![30.8, 59.4, f64::INFINITY])));
+        assert!(!confident(&r(vec![30.8, 2.5, f64::INFINITY])), "one cell a near-miss");
+        assert!(!confident(&r(vec![30.8, f64::NAN])));
     }
 
     #[test]
