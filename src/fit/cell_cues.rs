@@ -450,7 +450,7 @@ pub const MIN_ENERGY_GAIN: f64 = 3.0;
 pub const FACE_GAIN_PER_CELL: f64 = 2.0;
 
 /// Least margin (the cue energy one flipped cell costs, [`CueReading::margin`]) that every cell
-/// of an irregular reading must have for [`contest`] to let it meet a named winner as it is,
+/// of an irregular reading must have for `contest` to let it meet a named winner as it is,
 /// instead of standing in the named weave the cues rank first: three times [`MIN_ENERGY_GAIN`].
 ///
 /// Measured (docs/benchmarks.md, session 31, `examples/cell_cues_diag`) on the 101 Mitsuba
