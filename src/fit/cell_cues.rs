@@ -283,9 +283,9 @@ pub const SNAP_CELLS: f64 = 0.25;
 /// silhouettes matched against another renderer's yarns), and the cues, which compare cell
 /// interiors with the strips on the boundaries between them, then straddle the yarns: the
 /// seed-3232 random 3 × 6 (m3232_04) was read exactly, every cell's margin ≥ 30.8, at
-/// preparation's corner (67, 91), and with seven cells wrong at the fit's (67, 93), 0.18 cell
-/// lower. Each crop cell still reads the picture cell it overlaps most (the snap is under half a
-/// cell).
+/// preparation's corner (67, 91), and with seven cells wrong at the fit's (67, 93), 0.17 cell
+/// below the boundary at 90.53. Each crop cell still reads the picture cell it overlaps most (the
+/// snap is under half a cell).
 pub fn cue_origin(prep: &Prepared) -> [f64; 2] {
     [
         snap_to_boundary(prep.crop.x as f64, prep.phase_x as f64, prep.pitch_x as f64),
