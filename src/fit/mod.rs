@@ -225,7 +225,6 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
             lit
         })
         .flatten();
-    let turned_first = early.is_some();
     let ev0 = early.unwrap_or(ev0);
     let st0 = Stage { ev: &ev0, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     // A prepared crop starts wherever preparation put it: the warm-up's ply scans also try
@@ -323,9 +322,8 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let scan_light = !joint.stopped && photo && opts.finish.light_direction;
     // Where the light was turned before the pattern search, the rig as given is tried again here
     // with the settled cloth.
-    let given = turned_first.then_some(&r.lights);
     let lit = scan_light
-        .then(|| refine::fit_light_direction_from(&ev, &mut cloth, given, opts.finish.lm_iters, &opts.control.stop))
+        .then(|| refine::fit_light_direction_from(&ev, &mut cloth, &r.lights, opts.finish.lm_iters, &opts.control.stop))
         .flatten();
     if scan_light {
         stages.mark("light", lit.as_ref().unwrap_or(&ev), Some(&cloth));

@@ -244,17 +244,18 @@ pub(super) fn fit_light_direction(
     iters: usize,
     stop: &AtomicBool,
 ) -> Option<Evaluator> {
-    fit_light_direction_from(ev, cloth, None, iters, stop)
+    fit_light_direction_from(ev, cloth, &ev.scene().lights, iters, stop)
 }
 
-/// [`fit_light_direction`], with `given` (a rig that an earlier scan turned away from:
-/// `light_first`) tried first: the earlier turn stands only where the cloth as it is now still
-/// beats `given` by the margin (it was taken on a cruder probe), otherwise `given` is back; the
-/// turns are then taken about whichever rig stood.
+/// [`fit_light_direction`], with `given` (the rig the fit was given) tried first where an earlier
+/// scan (`light_first`) turned `ev`'s rig away from it: the earlier turn stands only where the
+/// cloth as it is now still beats `given` by the margin (it was taken on a cruder probe),
+/// otherwise `given` is back; the turns are then taken about whichever rig stood. Where `given`
+/// is `ev`'s rig there is nothing to try again.
 pub(super) fn fit_light_direction_from(
     ev: &Evaluator,
     cloth: &mut ClothParams,
-    given: Option<&crate::scene::LightRig>,
+    given: &crate::scene::LightRig,
     iters: usize,
     stop: &AtomicBool,
 ) -> Option<Evaluator> {
@@ -269,10 +270,10 @@ pub(super) fn fit_light_direction_from(
         let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
         (l, cand, next)
     };
-    if let Some(rig) = given.filter(|r| **r != ev.scene().lights) {
+    if *given != ev.scene().lights {
         // The earlier turn stands only where the settled cloth confirms it by the margin.
         if !stop.load(Ordering::Relaxed) {
-            let (l, cand, next) = under(rig.clone(), cloth);
+            let (l, cand, next) = under(given.clone(), cloth);
             if l.is_finite() && (best_loss.is_nan() || best_loss >= (1.0 - LIGHT_MIN_GAIN) * l) {
                 (best_loss, *cloth, kept) = (l, cand, Some(next));
             }
