@@ -34,6 +34,12 @@ pub(crate) fn pattern_loss_read(ev: &Evaluator, cand: &mut ClothParams, c: u32, 
     fit_colours(ev, cand, &cache, c, reading)
 }
 
+/// [`pattern_loss`] on a record of `cand` already traced (`cache`, e.g. of the same cloth
+/// against another framing of the target).
+pub(crate) fn fit_colours_on_record(ev: &Evaluator, cand: &mut ClothParams, cache: &PathCache, c: u32) -> f32 {
+    fit_colours(ev, cand, cache, c, Reading::YarnPixels)
+}
+
 /// [`pattern_loss_read`] with the record taken from `memo` (traced once per distinct state).
 pub(crate) fn pattern_loss_memo(memo: &RecordMemo, cand: &mut ClothParams, c: u32, reading: Reading) -> f32 {
     let cache = memo.record(cand);
