@@ -2,7 +2,7 @@
 //! every shift, the labellings read from the picture) and their ranking, single-cell toggles and
 //! greedy sweeps over them, the inverted twin, and the scan of one discrete parameter.
 
-use super::colours::{fit_colours_on_record, pattern_loss};
+use super::colours::{pattern_loss, pattern_loss_on_record};
 use super::evaluator::Evaluator;
 use super::target;
 use crate::params::ClothParams;
@@ -58,7 +58,12 @@ pub(crate) fn plain_derivatives(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
 /// cyclic shift, without duplicates: the presets and their 90° rotations, and the ribs and
 /// baskets of `plain_derivatives`.
 pub fn template_candidates(n_e: usize, n_a: usize) -> Vec<WeavePattern> {
-    template_shifts(n_e, n_a).into_iter().flat_map(|w| w.shifts.into_iter().map(|s| s.1)).collect()
+    shifted_patterns(&template_shifts(n_e, n_a))
+}
+
+/// Every pattern of `weaves`' shifts, in order: [`template_candidates`].
+fn shifted_patterns(weaves: &[WeaveShifts]) -> Vec<WeavePattern> {
+    weaves.iter().flat_map(|w| w.shifts.iter().map(|s| s.1.clone())).collect()
 }
 
 /// One named weave on the grid and the shifts of it that [`template_candidates`] lists.
@@ -123,7 +128,7 @@ fn shifted_losses(ev: &Evaluator, cloth: &ClothParams, weave: &WeaveShifts, c: u
         .map(|&((di, dj), _)| {
             let (dx, dy) = ((dj as u32 * c) as i32, (di as u32 * c) as i32);
             let moved = ev.sibling(ev.scene().clone(), target::shift_periodic(ev.target(), -dx, -dy), ev.block());
-            fit_colours_on_record(&moved, &mut base.clone(), &cache, c)
+            pattern_loss_on_record(&moved, &mut base.clone(), &cache, c)
         })
         .collect()
 }
@@ -142,7 +147,7 @@ pub(crate) fn rank_candidates(
     let (n_e, n_a) = (cloth.pattern.n_e(), cloth.pattern.n_a());
     let read = picture_labellings(ev, n_e, n_a, c);
     let weaves = template_shifts(n_e, n_a);
-    let templates: Vec<WeavePattern> = weaves.iter().flat_map(|w| w.shifts.iter().map(|s| s.1.clone())).collect();
+    let templates = shifted_patterns(&weaves);
     let mut scored: Vec<(f32, WeavePattern)> = Vec::new();
     for p in [cloth.pattern.clone()].into_iter().chain(read.iter().cloned()) {
         if stop.load(Ordering::Relaxed) {

@@ -36,7 +36,7 @@ pub(crate) fn pattern_loss_read(ev: &Evaluator, cand: &mut ClothParams, c: u32, 
 
 /// [`pattern_loss`] on a record of `cand` already traced (`cache`, e.g. of the same cloth
 /// against another framing of the target).
-pub(crate) fn fit_colours_on_record(ev: &Evaluator, cand: &mut ClothParams, cache: &PathCache, c: u32) -> f32 {
+pub(crate) fn pattern_loss_on_record(ev: &Evaluator, cand: &mut ClothParams, cache: &PathCache, c: u32) -> f32 {
     fit_colours(ev, cand, cache, c, Reading::YarnPixels)
 }
 
