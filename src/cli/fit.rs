@@ -60,7 +60,9 @@ pub struct FitArgs {
     /// Skip preparation: the image is exactly one pattern repeat, axis-aligned.
     #[arg(long)]
     pub no_prep: bool,
-    /// Fixed weave pattern (preset, 1100/0110/…, 0/1 text file or PNG): no pattern search.
+    /// Fixed weave pattern (preset, 1100/0110/…, 0/1 text file or PNG): no pattern search. On a
+    /// prepared photo it is fitted in the cyclic shift the crop shows (the crop starts at the
+    /// yarn boundaries, not where the given repeat does), so fit.json may list it shifted.
     #[arg(long)]
     pub pattern: Option<String>,
     /// Grid `NExNA` (weft rows × warp columns) of a --no-prep input; detected when absent.

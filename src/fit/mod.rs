@@ -230,7 +230,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // A prepared crop starts wherever preparation put it: the warm-up's ply scans also try
     // where the twist starts (`PreOptions::twist_origin`), and so does the stage after the view.
     let twist = opts.pre.twist_origin || target.prep.is_some();
-    let pre_opts = PreOptions { twist_origin: twist, ..opts.pre.clone() };
+    let pre_opts = PreOptions { twist_origin: twist, shift_fixed_pattern: target.prep.is_some(), ..opts.pre.clone() };
     let mut pre = preestimate::pre_estimate(
         &st0,
         &pre_opts,

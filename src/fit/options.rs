@@ -133,6 +133,11 @@ pub struct PreOptions {
     /// counts of the warm-up's shape scans: on for a prepared photo, whose crop starts wherever
     /// preparation put it; off for a one-repeat input, framed at the model's repeat edge.
     pub twist_origin: bool,
+    /// A fixed pattern (`InputOptions::pattern`) is fitted in the cyclic shift of it that the
+    /// crop's phase shows (`candidates::rank_shifts`): on for a prepared photo, whose crop
+    /// starts at the yarn boundaries preparation found, not where the given repeat starts; off
+    /// for a one-repeat input, taken as framed.
+    pub shift_fixed_pattern: bool,
     /// On a prepared photo, find the key light's direction before the pattern search, on a probe
     /// of the pattern the picture reads (`light_first`), so that the warm-up, the view and the
     /// joint runs compare patterns under the photo's light instead of the rig's fixed one. Off
@@ -159,6 +164,7 @@ impl Default for PreOptions {
             model: None,
             cell_cues: true,
             twist_origin: false,
+            shift_fixed_pattern: false,
             light_first: true,
         }
     }

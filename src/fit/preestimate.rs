@@ -6,7 +6,7 @@
 //! variant, a polish of the best — and the best warmed-up candidates, each after a greedy cell
 //! sweep, become the starts.
 
-use super::candidates::{best_variant, greedy_sweeps, inverted_twin, rank_candidates};
+use super::candidates::{best_variant, greedy_sweeps, inverted_twin, rank_candidates, rank_shifts};
 use super::colours::{estimate_colours, pattern_loss_memo, Reading};
 use super::evaluator::{state_loss, Evaluator, RecordMemo};
 use super::options::PreOptions;
@@ -145,6 +145,10 @@ pub(crate) fn pre_estimate(
             // depends on n_p, n_f and the appearance, which are still at their defaults here.
             let coarse = pre_ev.sibling(pre_ev.scene().clone(), pre_ev.target().clone(), (cp / 2).max(1));
             rank_candidates(&coarse, &cloth, cp, opts.shortlist, stop)
+        } else if opts.shift_fixed_pattern {
+            // Two shifts go to the warm-up: at the default appearance a shift along the twill line
+            // can score close to the right one.
+            rank_shifts(&pre_ev, &cloth, cp, opts.shortlist.max(2))
         } else {
             vec![cloth.pattern.clone()]
         };

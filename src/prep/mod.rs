@@ -469,7 +469,8 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
     );
     // 4b. The repeat of the cells (which yarn is on top), where it is clear: it overrides the
     //     pixel DMF, whose minima are set by what all cells share (see `cells`).
-    let cm = cells::cell_matrix(&gb, [ax0.pitch as f64, ay0.pitch as f64], [ax0.phase as f64, ay0.phase as f64]);
+    let cm =
+        cells::crossing_centred_matrix(&gb, [ax0.pitch as f64, ay0.pitch as f64], [ax0.phase as f64, ay0.phase as f64]);
     let mut n_cells = [None; 2];
     if let Some(m) = &cm {
         for (k, (axis_x, per, a)) in [(true, &mut per_x, &ax0), (false, &mut per_y, &ay0)].into_iter().enumerate() {
@@ -497,10 +498,15 @@ fn prepare_view(img: &Rgb32FImage, opts: &PrepOptions) -> Result<Prepared, PrepE
                 );
             }
             if let Some((n, c)) = found {
-                if !per.repeated || n_dmf != n {
-                    *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
+                let at_dmf = m.shift_corr(axis_x, n_dmf);
+                if pixel_period_stands(per.repeated && !dmf_contradicted, n_dmf, (n, c), at_dmf) {
+                    n_cells[k] = Some(n_dmf);
+                } else {
+                    if !per.repeated || n_dmf != n {
+                        *per = period::AxisPeriod { period: n as f32 * a.pitch, strength: c as f32, repeated: true };
+                    }
+                    n_cells[k] = Some(n);
                 }
-                n_cells[k] = Some(n);
             }
         }
     }
@@ -864,11 +870,38 @@ impl Prepared {
     }
 }
 
+/// Whether the pixel period of `n_dmf` cells stands against the repeat the cells found
+/// (`found`: cells and correlation), given the cells' own correlation at `n_dmf` (`at_dmf`) and
+/// whether the pixel period is a repeat the cells do not contradict (`pixel_ok`). It stands
+/// where the cells copy it clearly better than the repeat they found, by the excess a repeat
+/// needs over the other shifts ([`cells::MIN_CELL_EXCESS`]). Why: the cells' repeat is the
+/// smallest shift that passes their tests, and over few columns a shift can pass at the floor
+/// by chance: a basket 2 seen over 7 columns found 3 at 0.40 against 0.99 at the pixel period's
+/// 4, and preparation cut a 4 × 3 crop (fresh Mitsuba set seed 3434, scene 12). A smaller true
+/// repeat inside the pixel period (2 inside 4) copies the cells as well as the period does, so
+/// it still wins.
+fn pixel_period_stands(pixel_ok: bool, n_dmf: usize, found: (usize, f64), at_dmf: Option<f64>) -> bool {
+    pixel_ok && found.0 != n_dmf && at_dmf.is_some_and(|cd| cd > found.1 + cells::MIN_CELL_EXCESS)
+}
+
 #[cfg(test)]
 mod tests {
     use super::testutil::*;
     use super::*;
     use crate::math::linalg::{apply, mat3_inv, mat3_mul, translation};
+
+    /// The pixel period stands against a cells' repeat that passed at the floor where the cells
+    /// copy the period far better (the basket 2 seen over 7 columns), not against a smaller
+    /// repeat inside it that copies the cells as well, nor where the cells contradict it.
+    #[test]
+    fn the_pixel_period_stands_only_where_the_cells_copy_it_clearly_better() {
+        assert!(pixel_period_stands(true, 4, (3, 0.40), Some(0.99)));
+        assert!(!pixel_period_stands(true, 4, (2, 0.98), Some(0.99)), "a true repeat inside the period");
+        assert!(!pixel_period_stands(false, 4, (3, 0.40), Some(0.99)), "cells contradict the period");
+        assert!(!pixel_period_stands(true, 4, (3, 0.75), Some(0.99)), "within the excess");
+        assert!(!pixel_period_stands(true, 4, (3, 0.40), None), "the period lies beyond the cells");
+        assert!(!pixel_period_stands(true, 4, (4, 0.99), Some(0.99)), "the same repeat");
+    }
 
     fn opts_no_persp() -> PrepOptions {
         PrepOptions { perspective: false, ..Default::default() }
