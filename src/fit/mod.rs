@@ -283,7 +283,13 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     let mut cloth = finish::finish_runs(&st, &opts.finish, &best.1, &joint, &pre, &mut stages);
     let mut cue_contest = None;
     if let Some((c, r)) = cues.as_ref().filter(|_| !joint.stopped) {
-        let (kept, record) = cell_cues::contest(&ev, c, r, &cloth, opts.finish.lm_iters, &opts.control.stop);
+        let known: Vec<ClothParams> = joint
+            .runs
+            .iter()
+            .map(|r| r.1.clone())
+            .chain(pre.starts.iter().chain(&pre.warmed).chain(&pre.behind).cloned())
+            .collect();
+        let (kept, record) = cell_cues::contest(&ev, c, r, &cloth, &known, opts.finish.lm_iters, &opts.control.stop);
         let verdict = record.verdict;
         cue_contest = Some(record);
         if matches!(
