@@ -157,10 +157,14 @@ fn shifted_losses(ev: &Evaluator, cloth: &ClothParams, weave: &WeaveShifts, c: u
         .collect()
 }
 
+/// Shifts of the best named weave's inverse that [`rank_candidates`] sends on to the warm-up.
+const INVERSE_SHIFTS: usize = 2;
+
 /// Candidate ranking of the pattern pre-estimation: the cloth's own pattern, the labellings read
 /// from the picture ([`picture_labellings`]) and every named weave that fits the grid, in every
 /// shift, each scored with its own colour estimate. Returns the `keep` best patterns, best first,
-/// then the best named weave and the labellings read from the picture if not among them.
+/// then the best named weave, the best [`INVERSE_SHIFTS`] shifts of its inverse where that is
+/// another weave, and the labellings read from the picture, each if not among them.
 pub(crate) fn rank_candidates(
     ev: &Evaluator,
     cloth: &ClothParams,
@@ -203,13 +207,38 @@ pub(crate) fn rank_candidates(
     // within a few cells of the truth, while the coarse layout at the default appearance can rank
     // a shifted satin or twill above it, and cannot tell a colour labelling from its inverse.
     let best_template = scored.iter().find(|(_, p)| templates.contains(p)).map(|(_, p)| p.clone());
+    // Nor can it tell a weave from its inverse, the same cells with the other family on top (a
+    // 1/2 twill from the 2/1, a warp-faced satin from the weft-faced one): both families are the
+    // same grey. Where the inverse is another weave, not a shift of the same one, its two best
+    // ranked shifts go on too (the ranking's shift of one face says little about the other's:
+    // the floats lie elsewhere), to be told apart once the warm-up has given each its colours
+    // and shape. A grey 1/2 twill under an area light was lost to its 2/1 when only the 2/1 was
+    // warmed up (docs/benchmarks.md, session 35).
+    let inverse_shifts = best_template.as_ref().map_or_else(Vec::new, |t| inverse_shifts(ev, cloth, t, c));
     let mut out: Vec<WeavePattern> = scored.into_iter().take(keep.max(1)).map(|(_, p)| p).collect();
-    for t in best_template.into_iter().chain(read) {
+    for t in best_template.into_iter().chain(inverse_shifts).chain(read) {
         if !out.contains(&t) {
             out.push(t);
         }
     }
     out
+}
+
+/// The [`INVERSE_SHIFTS`] best shifts of `template`'s inverse, ranked from one trace
+/// ([`shifted_losses`]); none where the inverse is a shift of `template` itself (plain, 2/2 twill,
+/// basket).
+fn inverse_shifts(ev: &Evaluator, cloth: &ClothParams, template: &WeavePattern, c: u32) -> Vec<WeavePattern> {
+    let inverse = template.inverted();
+    if inverse.equivalent(template) {
+        return Vec::new();
+    }
+    let Some(w) = weave_shifts(&inverse, template.n_e(), template.n_a(), &mut Vec::new()) else {
+        return Vec::new();
+    };
+    let mut scored: Vec<(f32, WeavePattern)> =
+        shifted_losses(ev, cloth, &w, c).into_iter().zip(w.shifts.iter().map(|(_, p)| p.clone())).collect();
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    scored.into_iter().take(INVERSE_SHIFTS).map(|(_, p)| p).collect()
 }
 
 /// Whole-pattern candidates for an `n_e × n_a` grid: the labellings read from the target (see
@@ -428,6 +457,26 @@ mod tests {
         }
         let ranked = rank_candidates(&ev, &probe, c, 3, &AtomicBool::new(false));
         assert!(ranked[0].equivalent(&truth.pattern) && ranked[0] == truth.pattern, "{}", ranked[0]);
+    }
+
+    /// The inverse of a 3/1 twill (a 1/3, no preset) is offered in the shift the target shows
+    /// when the target is that 1/3; a 2/2 twill, its own inverse up to a shift, offers none.
+    #[test]
+    fn a_weaves_inverse_is_offered_in_the_shift_the_target_shows() {
+        let c = 8;
+        let twill31 = unreduced(&WeavePattern::preset("twill31").unwrap());
+        let inverse = twill31.inverted();
+        let rows: Vec<Vec<bool>> = (0..4).map(|i| (0..4).map(|j| inverse.get(i + 2, j + 1)).collect()).collect();
+        let mut truth = demo_cloth();
+        truth.pattern = WeavePattern::from_rows_unreduced(&rows).unwrap();
+        let ev = Evaluator::of_own_render(&truth, fit_scene(4, 4, c, 4, 3, &LightRig::default_rig()));
+        let probe = crate::fit::preestimate::default_cloth(default_twill(4, 4));
+        let offered = inverse_shifts(&ev, &probe, &twill31, c);
+        assert_eq!(offered.len(), INVERSE_SHIFTS);
+        assert!(offered.iter().all(|p| p.equivalent(&inverse) && !p.equivalent(&twill31)));
+        assert!(offered.contains(&truth.pattern), "{} not in {offered:?}", truth.pattern);
+        let twill22 = unreduced(&WeavePattern::preset("twill22").unwrap());
+        assert!(inverse_shifts(&ev, &probe, &twill22, c).is_empty());
     }
 
     /// A fixed pattern that is no named weave, on a target that shows it shifted by one row and
