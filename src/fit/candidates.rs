@@ -225,20 +225,14 @@ pub(crate) fn rank_candidates(
 }
 
 /// The [`INVERSE_SHIFTS`] best shifts of `template`'s inverse, ranked from one trace
-/// ([`shifted_losses`]); none where the inverse is a shift of `template` itself (plain, 2/2 twill,
+/// ([`rank_shifts`]); none where the inverse is a shift of `template` itself (plain, 2/2 twill,
 /// basket).
 fn inverse_shifts(ev: &Evaluator, cloth: &ClothParams, template: &WeavePattern, c: u32) -> Vec<WeavePattern> {
     let inverse = template.inverted();
     if inverse.equivalent(template) {
         return Vec::new();
     }
-    let Some(w) = weave_shifts(&inverse, template.n_e(), template.n_a(), &mut Vec::new()) else {
-        return Vec::new();
-    };
-    let mut scored: Vec<(f32, WeavePattern)> =
-        shifted_losses(ev, cloth, &w, c).into_iter().zip(w.shifts.iter().map(|(_, p)| p.clone())).collect();
-    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
-    scored.into_iter().take(INVERSE_SHIFTS).map(|(_, p)| p).collect()
+    rank_shifts(ev, &ClothParams { pattern: inverse, ..cloth.clone() }, c, INVERSE_SHIFTS)
 }
 
 /// Whole-pattern candidates for an `n_e × n_a` grid: the labellings read from the target (see
