@@ -132,6 +132,11 @@ pub struct FitArgs {
     /// where that lowers the loss).
     #[arg(long)]
     pub no_smooth_yarns: bool,
+    /// Keep a plain weave's yarns single (by default, on a prepared photo whose fit ends on a
+    /// plain weave, the yarns are also tried in pairs and threes, the 2 × 2 and 3 × 3 baskets, and
+    /// kept where that lowers the loss by a clear margin).
+    #[arg(long)]
+    pub no_grouped_yarns: bool,
     /// Scan the photo's light direction only once the pattern is settled (by default, on a
     /// prepared photo, it is also found before the pattern search, so that the candidates are
     /// compared under the photo's light).
@@ -176,6 +181,7 @@ impl FitArgs {
         o.finish.yarn_colours = !self.uniform_colours;
         o.finish.light_direction = !self.fixed_light;
         o.finish.smooth_yarns = !self.no_smooth_yarns;
+        o.finish.grouped_yarns = !self.no_grouped_yarns;
         o.pre.light_first = !self.no_light_first;
         o.finish.family_levels = !self.no_family_levels;
         Ok(o)

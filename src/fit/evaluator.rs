@@ -451,6 +451,12 @@ impl Evaluator {
         self
     }
 
+    /// Gaussian σ, in pixels of this evaluator's scene, of the blur its renders get
+    /// ([`Evaluator::with_blur`]).
+    pub(crate) fn blur_sigma(&self) -> f32 {
+        self.blur
+    }
+
     /// The same evaluator solving (`on`) or not a backdrop seen through the cloth's gaps
     /// (`solve_backdrop_for`). On for a photo (prepared target); off for a one-repeat render of
     /// the model's own, whose gaps show the model's lights: there the free backdrop only competes

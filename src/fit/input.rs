@@ -444,6 +444,23 @@ pub(crate) fn shift_target(t: &mut FitTarget, (dx, dy): (i32, i32), c: u32) {
     }
 }
 
+/// The target read with every yarn as `k` yarns (`paired`: yarns that work in groups, which
+/// preparation took for one): the grid `k` times finer, `image` the crop at the fit's pixels per
+/// cell on it, and the preparation's pitches, phases and weave repeat on that grid too, so that the
+/// output frames and registers the finer grid as the crop it spans.
+pub(crate) fn regroup_target(t: &mut FitTarget, k: usize, image: Image) {
+    t.grid = (t.grid.0 * k, t.grid.1 * k);
+    t.image = image;
+    t.blur_px *= k as f32;
+    if let Some(p) = t.prep.as_mut() {
+        let kf = k as f32;
+        (p.pitch_x, p.pitch_y) = (p.pitch_x / kf, p.pitch_y / kf);
+        (p.phase_x, p.phase_y) = (p.phase_x.rem_euclid(p.pitch_x), p.phase_y.rem_euclid(p.pitch_y));
+        (p.n_e, p.n_a) = (p.n_e * k, p.n_a * k);
+        p.weave_repeat = p.weave_repeat.map(|[e, a]| [e * k, a * k]);
+    }
+}
+
 /// The yarn grid: a fixed pattern's (with a warning where prep found another), else the one
 /// found by prep or given, else the one detected in `crop`; refused outside `1..=MAX_SIDE`, or
 /// when detected with a side under 2 (no weave fits).

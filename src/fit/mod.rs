@@ -54,6 +54,7 @@ mod joint;
 mod light_first;
 mod options;
 pub mod output;
+mod paired;
 mod parsimony;
 mod preestimate;
 mod proposal;
@@ -322,6 +323,42 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     }
     let mut checkpoints = joint.checkpoints;
     checkpoints.push(joint::checkpoint(&st, joint.history.len(), &cloth));
+    // A plain weave whose yarns may work in pairs or threes that preparation read as one yarn
+    // each (`paired`): the basket on a grid `k` times finer, kept where it lowers the loss by a
+    // clear margin; every later stage then works on that grid.
+    let (mut n_e, mut n_a, mut blur_px) = (n_e, n_a, view.1);
+    let ev = if photo && st.cells && !joint.stopped && opts.finish.grouped_yarns && paired::applies(&cloth, (n_e, n_a))
+    {
+        let (lm, stop) = (opts.finish.lm_iters, &opts.control.stop);
+        let (won, bouts) = paired::grouped_contest(&ev, &target.crop, (n_e, n_a), r.px_per_cell, &cloth, lm, stop);
+        if std::env::var_os("WOVEN_TRACE_PAIRED").is_some() {
+            eprintln!("paired: {bouts:?}");
+        }
+        match won {
+            Some(g) => {
+                warnings.push(format!(
+                    "the yarns were read in groups of {}: the {} replaced the plain weave of {} yarns (loss {:.5} against {:.5})",
+                    g.k,
+                    g.cloth.pattern.reduced(),
+                    n_e.max(n_a),
+                    bouts.iter().find(|b| b.k == g.k).map_or(0.0, |b| b.grouped),
+                    bouts.iter().find(|b| b.k == g.k).map_or(0.0, |b| b.plain),
+                ));
+                input::regroup_target(&mut target, g.k, g.ev.target().clone());
+                (n_e, n_a) = target.grid;
+                blur_px = g.ev.blur_sigma();
+                cloth = g.cloth;
+                stages.mark("grouped", &g.ev, Some(&cloth));
+                g.ev
+            }
+            None => {
+                stages.mark("grouped", &ev, None);
+                ev
+            }
+        }
+    } else {
+        ev
+    };
     // A photo's light direction, scanned once the pattern is settled and before the polish, so
     // that the radii, the twist origin and the shape are fitted under the light that was kept
     // (`refine::fit_light_direction`); a one-repeat render keeps the rig it was given.
@@ -472,7 +509,7 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         stages: stages.stages,
         retraces: ev.traces().count(),
         phase_shift,
-        blur_px: view.1,
+        blur_px,
     }))
 }
 

@@ -247,6 +247,10 @@ pub struct FinishOptions {
     /// without fibre relief under a light scanned for them, kept where that lowers the loss by a
     /// margin (`smooth_yarns`: the sharp crown highlight of a glossy tube).
     pub smooth_yarns: bool,
+    /// On a prepared photo whose fit ends on a plain weave of a few yarns, try the yarns as
+    /// working in pairs or threes that preparation read as one (the 2 × 2 and 3 × 3 baskets on a
+    /// finer grid), kept where that lowers the loss by a clear margin (`paired`).
+    pub grouped_yarns: bool,
     /// On a prepared photo, after the last descent, step a yarn family's body colours along their
     /// level (the exposure taking what would pass 1) where that lowers the loss by a margin and the
     /// held-out samples agree (`family_level`: a bright family held at its colours' bound).
@@ -263,6 +267,7 @@ impl Default for FinishOptions {
             yarn_colours: true,
             light_direction: true,
             smooth_yarns: true,
+            grouped_yarns: true,
             family_levels: true,
         }
     }
