@@ -738,8 +738,9 @@ pub struct EvalArgs {
     /// With --real: fit only the first N photos of labels.csv.
     #[arg(long, value_name = "N", requires = "real")]
     pub limit: Option<usize>,
-    /// With --real: the light rig of every photo (default: estimated per photo).
-    #[arg(long, requires = "real")]
+    /// With --real or --renders: the light rig of every image (default: estimated per image from
+    /// its preparation, as `woven fit` does).
+    #[arg(long)]
     pub lights: Option<LightRig>,
 }
 
@@ -770,6 +771,9 @@ pub fn run_eval(args: &EvalArgs) -> Result<()> {
     }
     if let Some(dir) = &args.real {
         return run_eval_real(dir, args);
+    }
+    if args.lights.is_some() {
+        bail!("--lights applies to --real or --renders (the synthetic targets are rendered under their own rigs)");
     }
     let rep = eval(&args.to_options(), &mut |i, truth, case| match &case.error {
         Some(e) => eprintln!("target {i}: fit failed: {e}"),
@@ -816,7 +820,10 @@ fn run_eval_renders(dir: &Path, args: &EvalArgs) -> Result<()> {
     opts.joint.iterations = args.iterations;
     opts.control.threads = args.threads;
     opts.render.seed = args.seed;
-    let rep = eval_renders(dir, &opts, args.save.as_ref(), &mut |c| match &c.error {
+    if let Some(rig) = &args.lights {
+        opts.render.lights = rig.clone();
+    }
+    let rep = eval_renders(dir, &opts, args.lights.is_none(), args.save.as_ref(), &mut |c| match &c.error {
         Some(e) => eprintln!("{}: fit failed: {e}", c.name),
         None => outln!(
             "{}: true {} fit {} exact={} crop_psnr={:.1} dB colour_err={} {:.1} s{}",

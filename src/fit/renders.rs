@@ -1,7 +1,8 @@
 //! Evaluation on renders by another renderer (`woven eval --renders DIR`): a folder of images with
 //! their ground truth, made by a renderer that is not woven's forward model (e.g. Mitsuba 3 with
 //! its own materials and lights; `datagen/mitsuba/make_set.py` writes such a folder). Each image
-//! takes the user's path (preparation, then the fit) and is scored: pattern exact up to shift, the
+//! takes the user's path (preparation, the capture estimated from the prepared image as `woven fit`
+//! estimates it, then the fit) and is scored: pattern exact up to shift, the
 //! fit's crop PSNR, and the mean colour of each yarn family against the input's.
 //!
 //! Folder format, per image `NAME`: `NAME.exr` (linear RGB; `NAME.png`, sRGB, when no EXR),
@@ -13,9 +14,10 @@
 //! the bottom weft of the image (its camera looks down with +y up), so the truth is the renderer's
 //! matrix inverted with its rows reversed.
 
+use super::capture::estimate_capture;
 use super::output::{registered_render_sharp, sheet_row, write_fit_outputs};
 use super::report::quantile;
-use super::{fit, FitOptions};
+use super::{fit, fit_prepared, FitOptions};
 use crate::image_io::Image;
 use crate::pattern::WeavePattern;
 use anyhow::{bail, Context, Result};
@@ -207,7 +209,13 @@ fn family_colours(input: &Image, labels: &Image, fit: &Image) -> Option<FamilyCo
 const SHEET_ROW_H: u32 = 128;
 
 /// Fit and score one image of the folder.
-fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) -> Result<RenderCase> {
+fn eval_image(
+    dir: &Path,
+    name: &str,
+    opts: &FitOptions,
+    estimate_lights: bool,
+    save: Option<&Path>,
+) -> Result<RenderCase> {
     let meta: serde_json::Value = serde_json::from_str(&crate::io::read_text_capped(
         &dir.join(format!("{name}.json")),
         crate::io::MAX_PARAM_FILE_BYTES,
@@ -233,7 +241,7 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
         error: None,
         row: None,
     };
-    match fit(&input, opts) {
+    match fit_as_user(&input, opts, estimate_lights) {
         Ok(res) => {
             case.secs = t.elapsed().as_secs_f64();
             case.fit = res.params.cloth.pattern.reduced().to_string();
@@ -262,17 +270,40 @@ fn eval_image(dir: &Path, name: &str, opts: &FitOptions, save: Option<&Path>) ->
     Ok(case)
 }
 
+/// The fit of `input` as `woven fit` makes it: prepared first, and with `estimate_lights` the
+/// light rig of the capture estimated from the preparation (`capture::estimate_capture`) in place
+/// of `opts.render.lights` where one is estimated; a preparation that fails leaves the fit to
+/// report it.
+fn fit_as_user(input: &Image, opts: &FitOptions, estimate_lights: bool) -> Result<super::FitResult> {
+    if !opts.input.prep {
+        return fit(input, opts);
+    }
+    match crate::prep::prepare(&input.to_rgb32f(), &crate::prep::PrepOptions::default()) {
+        Ok(p) => {
+            let mut o = opts.clone();
+            if let Some(c) = estimate_capture(&p).filter(|_| estimate_lights) {
+                o.render.lights = c.capture.rig();
+            }
+            fit_prepared(input, Some(p), &o)
+        }
+        Err(_) => fit(input, opts),
+    }
+}
+
 /// Fit every image of `dir` with `opts` (preparation on) and score it; `on_case` is called as
-/// each image is done. With `save`, each fit's outputs go to `save/NAME/`.
+/// each image is done. With `estimate_lights`, each image's light rig is the capture estimated
+/// from it (as `woven fit` does without `--lights`), else `opts.render.lights`. With `save`, each
+/// fit's outputs go to `save/NAME/`.
 pub fn eval_renders(
     dir: &Path,
     opts: &FitOptions,
+    estimate_lights: bool,
     save: Option<&PathBuf>,
     on_case: &mut dyn FnMut(&RenderCase),
 ) -> Result<RenderReport> {
     let mut cases = Vec::new();
     for name in image_stems(dir)? {
-        let case = eval_image(dir, &name, opts, save.map(|p| p.as_path()))?;
+        let case = eval_image(dir, &name, opts, estimate_lights, save.map(|p| p.as_path()))?;
         on_case(&case);
         cases.push(case);
     }
@@ -354,7 +385,7 @@ mod tests {
     fn a_folder_without_images_is_an_error() {
         let dir = std::env::temp_dir().join(format!("woven_renders_empty_{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let e = eval_renders(&dir, &FitOptions::fast(), None, &mut |_| {}).unwrap_err();
+        let e = eval_renders(&dir, &FitOptions::fast(), true, None, &mut |_| {}).unwrap_err();
         assert!(e.to_string().contains("holds no NAME.json"), "{e}");
         std::fs::remove_dir_all(&dir).ok();
     }

@@ -34,7 +34,8 @@
 //!
 //! A weave whose own yarns work in pairs along the fine axis (a 2 × 2 basket or an oxford with
 //! warps half as far apart as its wefts) spreads the classes as much; such a cloth is read with
-//! each pair as one yarn (the error this check can make).
+//! each pair as one yarn (the error this check can make; where the fit then ends on a plain weave,
+//! its grouped reading on the finer grid is tried against it by the loss: `fit::paired`).
 
 use super::cells::cell_matrix;
 use super::grid::AxisGrid;
