@@ -313,3 +313,14 @@ fn ctrl_c_never_replaces_a_complete_fit() {
     assert_eq!(std::fs::read(partial.join("fit.json")).unwrap(), partial_json);
     assert_eq!(names(d.path()), ["out", "out.partial", "plain.exr", "plain.json", "plain.png"]);
 }
+
+#[test]
+fn eval_lights_apply_to_a_folder_only() {
+    let d = tempfile::tempdir().unwrap();
+    // The synthetic targets are rendered under their own rigs: a rig for them is refused.
+    let e = fails_within(&["eval", "--count", "1", "--lights", "front"], EARLY);
+    assert!(e.contains("--lights applies to --real or --renders"), "{e}");
+    // With a folder of renders the rig is taken (the empty folder is what fails then).
+    let e = fails_within(&["eval", "--renders", s(d.path()), "--lights", "front"], EARLY);
+    assert!(e.contains("holds no NAME.json"), "{e}");
+}
