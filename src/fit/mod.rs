@@ -338,13 +338,13 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
             Some(g) => {
                 warnings.push(format!(
                     "the yarns were read in groups of {}: the {} replaced the plain weave of {} yarns (loss {:.5} against {:.5})",
-                    g.k,
+                    g.bout.k,
                     g.cloth.pattern.reduced(),
                     n_e.max(n_a),
-                    bouts.iter().find(|b| b.k == g.k).map_or(0.0, |b| b.grouped),
-                    bouts.iter().find(|b| b.k == g.k).map_or(0.0, |b| b.plain),
+                    g.bout.grouped,
+                    g.bout.plain,
                 ));
-                input::regroup_target(&mut target, g.k, g.ev.target().clone());
+                input::regroup_target(&mut target, g.bout.k, g.ev.target().clone());
                 (n_e, n_a) = target.grid;
                 blur_px = g.ev.blur_sigma();
                 cloth = g.cloth;

@@ -32,12 +32,12 @@ use crate::scene::Scene;
 use std::sync::atomic::AtomicBool;
 
 /// Group sizes tried: pairs (the 2 × 2 basket) and threes (the 3 × 3 basket).
-pub(crate) const GROUP_SIZES: [usize; 2] = [2, 3];
+const GROUP_SIZES: [usize; 2] = [2, 3];
 
 /// Largest side of the fit's grid for which the grouped readings are tried: the plain weave's own
 /// 2 × 2 and a colour repeat of it up to 4 yarns (beyond, the `k` times finer grid costs more
 /// than a rare basket is worth).
-pub(crate) const MAX_GRID_SIDE: usize = 4;
+const MAX_GRID_SIDE: usize = 4;
 
 /// Least fraction of the plain reading's loss (on the common target, both polished alike) by which
 /// the grouped reading must lower it to be kept.
@@ -61,13 +61,13 @@ pub(crate) fn grouped(p: &WeavePattern, k: usize) -> WeavePattern {
     WeavePattern::from_rows_unreduced(&tall).expect("a grouped pattern of a valid one is valid")
 }
 
-/// The grouped reading that won: its cloth (polished on the common target), the group size and
-/// the evaluator on the `k` times finer grid.
+/// The grouped reading that won: its cloth (polished on the common target), its bout (the group
+/// size and both losses) and the evaluator on the `k` times finer grid.
 pub(crate) struct GroupedReading {
     /// The grouped cloth, polished on `ev`.
     pub cloth: ClothParams,
-    /// Group size `k`.
-    pub k: usize,
+    /// The bout it won.
+    pub bout: Bout,
     /// The fit's evaluator on the `k` times finer grid: `k` times the pixels of the fit's target
     /// along each axis, the same lights, exposure, backdrop and blur (in the new pixels).
     pub ev: Evaluator,
@@ -142,7 +142,7 @@ pub(crate) fn grouped_contest(
         bouts.push(bout);
         let gain = bout.gain();
         if gain >= MIN_GAIN && best.as_ref().is_none_or(|(g, _)| gain > *g) {
-            best = Some((gain, GroupedReading { cloth: group, k, ev: fine }));
+            best = Some((gain, GroupedReading { cloth: group, bout, ev: fine }));
         }
     }
     (best.map(|(_, r)| r), bouts)
@@ -150,7 +150,7 @@ pub(crate) fn grouped_contest(
 
 /// `ev` on the grid `k` times finer: the crop resampled to `k·c` pixels per cell of `grid`, the
 /// scene `k` times larger (the blur scaled with it, `Evaluator::sibling`).
-pub(crate) fn finer_evaluator(ev: &Evaluator, crop: &Image, grid: (usize, usize), c: u32, k: usize) -> Evaluator {
+fn finer_evaluator(ev: &Evaluator, crop: &Image, grid: (usize, usize), c: u32, k: usize) -> Evaluator {
     let (w, h) = ((grid.1 * k) as u32 * c, (grid.0 * k) as u32 * c);
     let scene = Scene { width: w, height: h, ..ev.scene().clone() };
     ev.sibling(scene, resample(crop, w, h), ev.block())
@@ -213,11 +213,10 @@ mod tests {
         let (picture, ev) = plain_reading_of(&truth, 8);
         let (won, bouts) = grouped_contest(&ev, &picture, (2, 2), 8, &plain, 4, &stop);
         let won = won.expect("the basket 2 is read");
-        assert_eq!(won.k, 2, "{bouts:?}");
+        assert_eq!(won.bout.k, 2, "{bouts:?}");
         assert_eq!(won.cloth.pattern.reduced(), truth.pattern);
         assert_eq!((won.ev.scene().width, won.ev.scene().height), (32, 32));
-        let pair = bouts.iter().find(|b| b.k == 2).unwrap();
-        assert!(pair.gain() >= MIN_GAIN, "{bouts:?}");
+        assert!(won.bout.gain() >= MIN_GAIN, "{bouts:?}");
         // A plain weave seen as one: no grouped reading is kept.
         let mut truth = plain.clone();
         (truth.r_e, truth.r_a) = (4.0, 4.0);
