@@ -257,7 +257,7 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
     let t_prepared = started.0.elapsed().as_secs_f64();
     if let Some(c) = &capture {
         if args.lights.is_none() {
-            opts.render.lights = c.capture.rig();
+            c.apply(&mut opts.render);
             eprintln!("{}", c.describe());
         }
     }

@@ -366,7 +366,17 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
     // Where the light was turned before the pattern search, the rig as given is tried again here
     // with the settled cloth.
     let lit = scan_light
-        .then(|| refine::fit_light_direction_from(&ev, &mut cloth, &r.lights, opts.finish.lm_iters, &opts.control.stop))
+        .then(|| {
+            let (lm, stop) = (opts.finish.lm_iters, &opts.control.stop);
+            let (lit, rival) = refine::fit_light_direction_from(&ev, &mut cloth, &r.lights, &r.rival_lights, lm, stop);
+            if rival {
+                warnings.push(
+                    "the default light rig (ambient, front, back and side lights) fitted the photo better than the capture estimated from it (--lights sets the rig)"
+                        .to_string(),
+                );
+            }
+            lit
+        })
         .flatten();
     if scan_light {
         stages.mark("light", lit.as_ref().unwrap_or(&ev), Some(&cloth));

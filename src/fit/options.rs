@@ -70,6 +70,12 @@ pub struct RenderSettings {
     pub seed: u64,
     /// Light rig of the fit scene.
     pub lights: LightRig,
+    /// Other rigs the light stage of a photo fit (`refine::fit_light_direction_from`) tries
+    /// against `lights` once the pattern is settled, each kept only where it lowers the loss by
+    /// the stage's margin: where `lights` was estimated from the photo
+    /// (`capture::CaptureEstimate::apply`) rather than given, the default rig is one. Empty when
+    /// the user named the rig.
+    pub rival_lights: Vec<LightRig>,
 }
 
 impl Default for RenderSettings {
@@ -81,6 +87,7 @@ impl Default for RenderSettings {
             loss_block: 2,
             seed: 1,
             lights: LightRig::default_rig(),
+            rival_lights: Vec::new(),
         }
     }
 }

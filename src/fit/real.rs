@@ -318,7 +318,7 @@ fn eval_photo(dir: &Path, label: &RealLabel, opts: &RealOptions) -> RealCase {
             if opts.estimate_lights {
                 case.capture = estimate_capture(&p);
                 if let Some(k) = &case.capture {
-                    fopts.render.lights = k.capture.rig();
+                    k.apply(&mut fopts.render);
                 }
             }
             p

@@ -244,21 +244,24 @@ pub(super) fn fit_light_direction(
     iters: usize,
     stop: &AtomicBool,
 ) -> Option<Evaluator> {
-    fit_light_direction_from(ev, cloth, &ev.scene().lights, iters, stop)
+    fit_light_direction_from(ev, cloth, &ev.scene().lights, &[], iters, stop).0
 }
 
 /// [`fit_light_direction`], with `given` (the rig the fit was given) tried first where an earlier
 /// scan (`light_first`) turned `ev`'s rig away from it: the earlier turn stands only where the
 /// cloth as it is now still beats `given` by the margin (it was taken on a cruder probe),
 /// otherwise `given` is back; the turns are then taken about whichever rig stood. Where `given`
-/// is `ev`'s rig there is nothing to try again.
+/// is `ev`'s rig there is nothing to try again. Each of `rivals` (other rigs the photo may have been
+/// lit by: `RenderSettings::rival_lights`) is then tried as a turned rig is, kept where it beats
+/// the rig that stands by the margin, before the turns. The flag says whether a rival was kept.
 pub(super) fn fit_light_direction_from(
     ev: &Evaluator,
     cloth: &mut ClothParams,
     given: &crate::scene::LightRig,
+    rivals: &[crate::scene::LightRig],
     iters: usize,
     stop: &AtomicBool,
-) -> Option<Evaluator> {
+) -> (Option<Evaluator>, bool) {
     let mut best_loss = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
     let mut kept: Option<Evaluator> = None;
     // `cloth` re-traced under `rig` and its appearance descended: the loss, the appearance, the
@@ -293,6 +296,10 @@ pub(super) fn fit_light_direction_from(
         }
         better
     };
+    let mut rival_kept = false;
+    for rig in rivals.iter().filter(|&r| r != given && *r != ev.scene().lights) {
+        rival_kept |= try_rig(rig.clone(), &mut best_loss, &mut kept);
+    }
     let base = kept.as_ref().map_or_else(|| ev.scene().lights.clone(), |k| k.scene().lights.clone());
     let mut turn = 0.0;
     for deg in (1..).map(|k| k as f32 * RIG_TURN_STEP_DEG).take_while(|&d| d < 360.0) {
@@ -311,7 +318,7 @@ pub(super) fn fit_light_direction_from(
             try_rig(rig, &mut best_loss, &mut kept);
         }
     }
-    kept
+    (kept, rival_kept)
 }
 
 /// Floor of the damping term `ε` added to the scaled Hessian's diagonal. [`lm::minimize`] takes
@@ -731,5 +738,32 @@ mod tests {
         let ev = Evaluator::new(scene, same, 2);
         let mut c = truth.clone();
         assert!(fit_light_direction(&ev, &mut c, 6, &stop).is_none());
+    }
+
+    #[test]
+    fn a_rival_rig_is_kept_only_where_the_picture_was_lit_by_it() {
+        // The demo cloth rendered under the default rig (ambient, front, back, side) and fitted
+        // under the front rig with the default rig as rival: the rival is kept and the loss falls
+        // below the front rig's best; rendered under the front rig, the rival is refused.
+        let truth = crate::fit::demo::demo_cloth();
+        let (front, default) = (LightRig::named("front").unwrap(), LightRig::default_rig());
+        let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, &front);
+        let stop = AtomicBool::new(false);
+        let by_default = crate::scene::Scene { lights: default.clone(), ..scene.clone() };
+        let target = Evaluator::of_own_render(&truth, by_default).target().clone();
+        let ev = Evaluator::new(scene.clone(), target, 2);
+        let mut under_front = truth.clone();
+        let l_front = lm_appearance(&ev, &ev.record(&under_front), &mut under_front, 6, &stop);
+        let mut cloth = truth.clone();
+        let (kept, rival) = fit_light_direction_from(&ev, &mut cloth, &front, std::slice::from_ref(&default), 6, &stop);
+        assert!(rival, "the default rig lit the picture");
+        let kept = kept.expect("a rig is kept");
+        let l = total_loss(kept.trace_mse(&cloth), &cloth.appearance.to_vec());
+        assert!(l < 0.5 * l_front, "rival {l} vs front {l_front}");
+        let same = Evaluator::of_own_render(&truth, scene.clone()).target().clone();
+        let ev = Evaluator::new(scene, same, 2);
+        let mut c = truth.clone();
+        let (_, rival) = fit_light_direction_from(&ev, &mut c, &front, std::slice::from_ref(&default), 6, &stop);
+        assert!(!rival, "the front rig lit the picture");
     }
 }

@@ -282,7 +282,7 @@ fn fit_as_user(input: &Image, opts: &FitOptions, estimate_lights: bool) -> Resul
         Ok(p) => {
             let mut o = opts.clone();
             if let Some(c) = estimate_capture(&p).filter(|_| estimate_lights) {
-                o.render.lights = c.capture.rig();
+                c.apply(&mut o.render);
             }
             fit_prepared(input, Some(p), &o)
         }
