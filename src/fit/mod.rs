@@ -51,6 +51,7 @@ mod held_out;
 pub mod identify;
 pub mod input;
 mod joint;
+mod key_light;
 mod light_first;
 mod options;
 pub mod output;
@@ -394,6 +395,23 @@ fn pipeline(input: &Image, prepared: Option<crate::prep::Prepared>, opts: &FitOp
         None
     };
     let ev = smoothed.unwrap_or(ev);
+    // The key light's elevation, the fill and the key light's softness, once its direction
+    // stands and the yarn (fibrous or smooth) is chosen (`key_light`): a smooth glossy yarn asks
+    // for another light than the fibrous one it replaced.
+    let shaped = scan_light
+        .then(|| {
+            let (lm, stop) = (opts.finish.lm_iters, &opts.control.stop);
+            let (shaped, change) = key_light::fit_key_light(&ev, &mut cloth, lm, r.seed, stop);
+            if std::env::var_os(refine::TRACE_LIGHT_VAR).is_some() {
+                eprintln!("key light: {change:?}");
+            }
+            shaped
+        })
+        .flatten();
+    if scan_light {
+        stages.mark("key light", shaped.as_ref().unwrap_or(&ev), Some(&cloth));
+    }
+    let ev = shaped.unwrap_or(ev);
     let st = Stage { ev: &ev, render: r, control: &opts.control, cells: opts.cells_free(), clock };
     // The polish, the shape, the hair and the exposure trade each descend or scan on the fit's own
     // samples; each is kept only where the held-out samples agree (`held_out`: a sharp specular

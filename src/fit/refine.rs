@@ -189,7 +189,9 @@ const FRONT_ELEVATIONS_DEG: [f32; 2] = [42.0, 84.0];
 /// Relative drop of the loss a turned or tilted rig must give to be kept: the re-trace under
 /// another light is a new sample of the paths, so a change smaller than the noise of a loss
 /// estimate is no evidence about the light.
-const LIGHT_MIN_GAIN: f32 = 0.03;
+pub(super) const LIGHT_MIN_GAIN: f32 = 0.03;
+/// Environment variable that makes the light stages print what they changed to stderr.
+pub(crate) const TRACE_LIGHT_VAR: &str = "WOVEN_TRACE_LIGHT";
 
 /// `rig` turned by `deg` about the cloth normal (the z axis): every directional light's
 /// direction and every point light's position rotated in the cloth plane.
