@@ -8,10 +8,9 @@
 //! - **Elevation.** The key light's height sets how far along a float the lit crown moves and how
 //!   long the shadow in the gap beside it is; a light at 50° fitted with one at 42° or 67°
 //!   leaves a bright-dark pair of error bands along every float.
-//! - **Fill.** The rig's ambient (0.15 against a key of 4, a fill ratio of about 0.04 per
-//!   steradian-weighted unit) lights the yarns' shadowed flanks and the gaps; a photo taken with
-//!   one lamp in a dark room has almost none (the cross-renderer sets draw 0–0.08), one under a
-//!   diffuse sky much more. The appearance makes up for it with a darker, glossier yarn.
+//! - **Fill.** The rig's ambient (radiance 0.15 against the key light's irradiance of 4) lights
+//!   the yarns' shadowed flanks and the gaps; a photo taken with one lamp in a dark room has
+//!   almost none (the cross-renderer sets draw 0–0.08), one under a diffuse sky much more.
 //! - **Softness.** A lamp of finite size (a softbox, a window, the rectangle emitters of the
 //!   cross-renderer sets: 3–15° across) blurs the shadows and widens the highlights; the rig's key
 //!   light is a point at infinity (`cone_deg` 0).
@@ -22,6 +21,10 @@
 //! drop is no evidence about the light). Elevation first, in steps that halve; then the fill, by
 //! factors that continue in the direction that paid; then the softness. A rig without a front
 //! light (a back-lit capture) keeps its key light as it is and has only its fill scanned.
+//!
+//! Measured (docs/benchmarks.md, session 40): on 36 cross-renderer scenes the elevation moved on
+//! 16, the fill on 6, the softness on 4; crop PSNR +0.4–0.6 dB on average per set, no scene more
+//! than 0.1 dB worse.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
