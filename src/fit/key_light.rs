@@ -30,7 +30,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::evaluator::Evaluator;
 use super::held_out::HeldOut;
-use super::refine::{front_at_elevation, lm_appearance, LIGHT_MIN_GAIN};
+use super::refine::{front_at_elevation, is_front_light, lm_appearance, under_rig, LIGHT_MIN_GAIN};
 use crate::params::ClothParams;
 use crate::scene::{LightRig, LightSpec};
 
@@ -60,12 +60,10 @@ pub(crate) struct KeyLightChange {
 
 /// Elevation (degrees above the cloth plane) of the rig's directional light named `front`.
 pub(crate) fn front_elevation(rig: &LightRig) -> Option<f32> {
-    rig.lights.iter().find_map(|l| match l {
-        LightSpec::Directional { name, direction: d, .. } if name == "front" && d[2] > 0.0 => {
-            Some(d[2].atan2(d[0].hypot(d[1])).to_degrees())
-        }
-        _ => None,
-    })
+    match rig.lights.iter().find(|l| is_front_light(l))? {
+        LightSpec::Directional { direction: d, .. } => Some(d[2].atan2(d[0].hypot(d[1])).to_degrees()),
+        LightSpec::Point { .. } => None,
+    }
 }
 
 /// `rig` with its ambient radiance scaled by `k` (at most [`MAX_FILL`]); `None` where it has none.
@@ -80,13 +78,10 @@ pub(crate) fn fill_scaled(rig: &LightRig, k: f32) -> Option<LightRig> {
 /// has no such light.
 pub(crate) fn front_softened(rig: &LightRig, deg: f32) -> Option<LightRig> {
     let mut out = rig.clone();
-    let cone = out.lights.iter_mut().find_map(|l| match l {
-        LightSpec::Directional { name, direction, cone_deg, .. } if name == "front" && direction[2] > 0.0 => {
-            Some(cone_deg)
-        }
-        _ => None,
-    })?;
-    *cone = deg;
+    let LightSpec::Directional { cone_deg, .. } = out.lights.iter_mut().find(|l| is_front_light(l))? else {
+        return None;
+    };
+    *cone_deg = deg;
     Some(out)
 }
 
@@ -97,12 +92,6 @@ struct Standing {
     cloth: ClothParams,
     loss: f32,
     rig: Option<LightRig>,
-}
-
-/// `start`'s evaluator under `rig` (no trace; its re-traces count on `start`'s counter).
-fn under(start: &Evaluator, rig: LightRig) -> Evaluator {
-    let scene = crate::scene::Scene { lights: rig, ..start.scene().clone() };
-    start.sibling(scene, start.target().clone(), start.block())
 }
 
 impl Standing {
@@ -117,7 +106,7 @@ impl Standing {
         if stop.load(Ordering::Relaxed) {
             return false;
         }
-        let next = under(start, rig.clone());
+        let next = under_rig(start, rig.clone());
         let mut cand = self.cloth.clone();
         let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
         // A NaN loss is not below: the candidate is not kept.
@@ -160,10 +149,10 @@ pub(crate) fn fit_key_light(
         // Against the confirmed state's own descended appearance, so that the descent alone
         // earns nothing.
         let before = *held.get_or_insert_with(|| {
-            let at = confirmed.rig.clone().map(|r| under(ev, r));
+            let at = confirmed.rig.clone().map(|r| under_rig(ev, r));
             HeldOut::new(at.as_ref().unwrap_or(ev), seed).loss(&confirmed.cloth)
         });
-        let after = HeldOut::new(&under(ev, rig), seed).loss(&st.cloth);
+        let after = HeldOut::new(&under_rig(ev, rig), seed).loss(&st.cloth);
         if after < before {
             held = Some(after);
             *confirmed = st.clone();
@@ -218,7 +207,7 @@ pub(crate) fn fit_key_light(
     match confirmed.rig {
         Some(rig) => {
             *cloth = confirmed.cloth;
-            (Some(under(ev, rig)), change)
+            (Some(under_rig(ev, rig)), change)
         }
         None => (None, change),
     }
@@ -228,8 +217,8 @@ pub(crate) fn fit_key_light(
 mod tests {
     use super::*;
     use crate::fit::evaluator::total_loss;
+    use crate::fit::refine::tests::lit_by;
     use crate::fit::refine::turned_rig;
-    use crate::fit::target::fit_scene;
 
     #[test]
     fn the_rig_helpers_change_only_what_they_name() {
@@ -259,11 +248,8 @@ mod tests {
         // and the loss falls; rendered under the front rig itself, nothing changes.
         let truth = crate::fit::demo::demo_cloth();
         let front = LightRig::named("front").unwrap();
-        let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, &front);
-        let lit_rig = fill_scaled(&front_at_elevation(&front, 50.0).unwrap(), 0.1).unwrap();
-        let lit = crate::scene::Scene { lights: lit_rig, ..scene.clone() };
-        let target = Evaluator::of_own_render(&truth, lit).target().clone();
-        let ev = Evaluator::new(scene.clone(), target, 2);
+        let lit = fill_scaled(&front_at_elevation(&front, 50.0).unwrap(), 0.1).unwrap();
+        let ev = lit_by(&truth, &front, &lit);
         let stop = AtomicBool::new(false);
         let mut held = truth.clone();
         let l_held = lm_appearance(&ev, &ev.record(&held), &mut held, 6, &stop);
@@ -276,8 +262,7 @@ mod tests {
         let l = total_loss(kept.trace_mse(&cloth), &cloth.appearance.to_vec());
         assert!(l < 0.7 * l_held, "changed {l} vs held {l_held}");
         assert_eq!(kept.traces().count(), ev.traces().count());
-        let same = Evaluator::of_own_render(&truth, scene.clone()).target().clone();
-        let ev = Evaluator::new(scene, same, 2);
+        let ev = lit_by(&truth, &front, &front);
         let mut c = truth.clone();
         let (kept, change) = fit_key_light(&ev, &mut c, 6, 5, &stop);
         assert!(kept.is_none(), "{change:?}");

@@ -209,15 +209,26 @@ pub(super) fn turned_rig(rig: &crate::scene::LightRig, deg: f32) -> crate::scene
     out
 }
 
+/// Whether `l` is the rig's key light: the directional light named `front`, lighting the cloth
+/// from the front.
+pub(super) fn is_front_light(l: &crate::scene::LightSpec) -> bool {
+    matches!(l, crate::scene::LightSpec::Directional { name, direction, .. } if name == "front" && direction[2] > 0.0)
+}
+
+/// `ev`'s evaluator under `rig` (no trace; its re-traces count on `ev`'s counter).
+pub(super) fn under_rig(ev: &Evaluator, rig: crate::scene::LightRig) -> Evaluator {
+    let scene = crate::scene::Scene { lights: rig, ..ev.scene().clone() };
+    ev.sibling(scene, ev.target().clone(), ev.block())
+}
+
 /// `rig` with the directional light named `front` raised or lowered to `elev_deg` above the
 /// cloth plane, its azimuth kept; `None` when the rig has no such light.
 pub(super) fn front_at_elevation(rig: &crate::scene::LightRig, elev_deg: f32) -> Option<crate::scene::LightRig> {
     use crate::scene::LightSpec;
     let mut out = rig.clone();
-    let front = out.lights.iter_mut().find_map(|l| match l {
-        LightSpec::Directional { name, direction, .. } if name == "front" && direction[2] > 0.0 => Some(direction),
-        _ => None,
-    })?;
+    let LightSpec::Directional { direction: front, .. } = out.lights.iter_mut().find(|l| is_front_light(l))? else {
+        return None;
+    };
     let az = front[1].atan2(front[0]);
     let (se, ce) = elev_deg.to_radians().sin_cos();
     *front = [ce * az.cos(), ce * az.sin(), se];
@@ -269,8 +280,7 @@ pub(super) fn fit_light_direction_from(
     // `cloth` re-traced under `rig` and its appearance descended: the loss, the appearance, the
     // evaluator.
     let under = |rig: crate::scene::LightRig, cloth: &ClothParams| {
-        let scene = crate::scene::Scene { lights: rig, ..ev.scene().clone() };
-        let next = ev.sibling(scene, ev.target().clone(), ev.block());
+        let next = under_rig(ev, rig);
         let mut cand = cloth.clone();
         let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
         (l, cand, next)
@@ -518,7 +528,7 @@ pub(super) fn appearance_restarts(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::fit::target::fit_scene;
     use crate::scene::LightRig;
@@ -709,6 +719,15 @@ mod tests {
         assert!(front_at_elevation(&LightRig::named("back").unwrap(), 30.0).is_none());
     }
 
+    /// An evaluator fitting under `fitted` a picture of `truth` rendered under `lit` (the fit's
+    /// own view, 8 px per cell, 2 spp, seed 5).
+    pub(crate) fn lit_by(truth: &ClothParams, fitted: &LightRig, lit: &LightRig) -> Evaluator {
+        let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, fitted);
+        let picture = crate::scene::Scene { lights: lit.clone(), ..scene.clone() };
+        let target = Evaluator::of_own_render(truth, picture).target().clone();
+        Evaluator::new(scene, target, 2)
+    }
+
     #[test]
     fn a_cloth_lit_from_another_side_gets_its_rig_turned() {
         // The demo cloth rendered under the front rig turned by 180° (light from the other side),
@@ -716,10 +735,7 @@ mod tests {
         // the loss drops; a cloth rendered under the rig as given keeps it.
         let truth = crate::fit::demo::demo_cloth();
         let front = LightRig::named("front").unwrap();
-        let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, &front);
-        let lit = crate::scene::Scene { lights: turned_rig(&front, 180.0), ..scene.clone() };
-        let target = Evaluator::of_own_render(&truth, lit).target().clone();
-        let ev = Evaluator::new(scene.clone(), target, 2);
+        let ev = lit_by(&truth, &front, &turned_rig(&front, 180.0));
         let stop = AtomicBool::new(false);
         let mut held = truth.clone();
         let l_held = lm_appearance(&ev, &ev.record(&held), &mut held, 6, &stop);
@@ -736,8 +752,7 @@ mod tests {
         assert!(l < 0.7 * l_held, "turned {l} vs held {l_held}");
         assert_eq!(kept.traces().count(), ev.traces().count());
         // Lit as the rig says: nothing is kept.
-        let same = Evaluator::of_own_render(&truth, scene.clone()).target().clone();
-        let ev = Evaluator::new(scene, same, 2);
+        let ev = lit_by(&truth, &front, &front);
         let mut c = truth.clone();
         assert!(fit_light_direction(&ev, &mut c, 6, &stop).is_none());
     }
@@ -749,11 +764,8 @@ mod tests {
         // below the front rig's best; rendered under the front rig, the rival is refused.
         let truth = crate::fit::demo::demo_cloth();
         let (front, default) = (LightRig::named("front").unwrap(), LightRig::default_rig());
-        let scene = fit_scene(truth.pattern.n_e(), truth.pattern.n_a(), 8, 2, 5, &front);
         let stop = AtomicBool::new(false);
-        let by_default = crate::scene::Scene { lights: default.clone(), ..scene.clone() };
-        let target = Evaluator::of_own_render(&truth, by_default).target().clone();
-        let ev = Evaluator::new(scene.clone(), target, 2);
+        let ev = lit_by(&truth, &front, &default);
         let mut under_front = truth.clone();
         let l_front = lm_appearance(&ev, &ev.record(&under_front), &mut under_front, 6, &stop);
         let mut cloth = truth.clone();
@@ -762,8 +774,7 @@ mod tests {
         let kept = kept.expect("a rig is kept");
         let l = total_loss(kept.trace_mse(&cloth), &cloth.appearance.to_vec());
         assert!(l < 0.5 * l_front, "rival {l} vs front {l_front}");
-        let same = Evaluator::of_own_render(&truth, scene.clone()).target().clone();
-        let ev = Evaluator::new(scene, same, 2);
+        let ev = lit_by(&truth, &front, &front);
         let mut c = truth.clone();
         let (_, rival) = fit_light_direction_from(&ev, &mut c, &front, std::slice::from_ref(&default), 6, &stop);
         assert!(!rival, "the front rig lit the picture");
