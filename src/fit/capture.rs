@@ -16,7 +16,9 @@
 //!   since a back light alone would show little but a silhouette).
 //!
 //! Which lattice is the holes is told by the light rather than by the grid's phase, which can sit
-//! half a pitch off on a plain weave (boundaries found at the yarn centres).
+//! half a pitch off on a plain weave (boundaries found at the yarn centres), or along one axis
+//! only: where the crossings and centres show no back light, the two lattices shifted half a
+//! pitch along one axis are read too, and a back light found there is taken.
 
 use crate::prep::image_ops::Gray;
 use crate::prep::Prepared;
@@ -189,26 +191,84 @@ fn window_mean(g: &Gray, x: f32, y: f32, r: usize) -> f32 {
     }
 }
 
+/// The luminance of one pairing of lattices (the points taken for the crossings, those taken for
+/// the centres) and what [`estimate_capture`] reads from it.
+#[derive(Clone, Copy, Debug)]
+struct LatticeReading {
+    /// Median luminance of the brighter lattice of the pair.
+    hi: f32,
+    /// Median luminance of the darker one.
+    lo: f32,
+    /// Median share of the bright points' luminance kept [`SPOT_REACH`] pitches away (the better
+    /// of the two axes): small for a hole, large for a bright yarn top.
+    reach: f32,
+    /// Points of the lattice taken for the crossings.
+    crossings: usize,
+    /// Share of the picture brighter than the middle of its luminance range.
+    bright_share: f32,
+}
+
+impl LatticeReading {
+    /// The reading of `g` with the points `holes` (x positions, y positions) and `centres`, each
+    /// averaged over a square of half-side `r`; the reach looked at `(dx, dy)` pixels away.
+    fn new(
+        g: &Gray,
+        holes: (&[f32], &[f32]),
+        centres: (&[f32], &[f32]),
+        r: usize,
+        (dx, dy): (f32, f32),
+        bright_share: f32,
+    ) -> Self {
+        let at = |(xs, ys): (&[f32], &[f32])| -> Vec<f32> {
+            ys.iter().flat_map(|&y| xs.iter().map(move |&x| (x, y))).map(|(x, y)| window_mean(g, x, y, r)).collect()
+        };
+        let (a, b) = (median(at(holes)), median(at(centres)));
+        // How far the brightness of the bright lattice points reaches: a hole is a small spot
+        // closed on every side by yarns, a bright yarn top (a white weft on a dark warp, lit from
+        // the front) stays bright along its yarn. Luminance at ±SPOT_REACH pitches along x and
+        // along y, the better direction, as a share of the point's own.
+        let (bx, by) = if a >= b { holes } else { centres };
+        let reach: Vec<f32> = by
+            .iter()
+            .flat_map(|&y| bx.iter().map(move |&x| (x, y)))
+            .filter_map(|(x, y)| {
+                let c = window_mean(g, x, y, r);
+                let along_x = 0.5 * (window_mean(g, x - dx, y, r) + window_mean(g, x + dx, y, r));
+                let along_y = 0.5 * (window_mean(g, x, y - dy, r) + window_mean(g, x, y + dy, r));
+                let m = along_x.max(along_y);
+                (c > 0.0 && m.is_finite()).then(|| m / c)
+            })
+            .collect();
+        // `f32::max` would drop a NaN median (no point inside the image): keep it NaN.
+        let (hi, lo) = if a.is_finite() && b.is_finite() { (a.max(b), a.min(b)) } else { (f32::NAN, f32::NAN) };
+        LatticeReading { hi, lo, reach: median(reach), crossings: holes.0.len() * holes.1.len(), bright_share }
+    }
+
+    /// Whether the bright points are holes with a light behind them (the module docs' rule).
+    fn backlit(&self) -> bool {
+        self.hi >= BACKLIT_RATIO * self.lo.max(1e-6)
+            && self.bright_share <= BACKLIT_BRIGHT_SHARE
+            && self.reach.is_finite()
+            && self.reach <= MAX_HOLE_REACH
+    }
+}
+
 /// Estimate the capture of a prepared photo (see the module docs). `None` when the grid leaves
 /// no crossing and centre to measure inside the image (fewer than 2 each way).
 pub fn estimate_capture(p: &Prepared) -> Option<CaptureEstimate> {
-    let g = Gray::from_rgb(&p.rectified);
-    let r = ((0.12 * p.pitch_x.min(p.pitch_y)).round() as usize).max(1);
+    estimate_on(&Gray::from_rgb(&p.rectified), (p.pitch_x, p.pitch_y), (p.phase_x, p.phase_y))
+}
+
+/// [`estimate_capture`] on the luminance `g` of a rectified photo whose yarn boundaries lie at
+/// `phase + k·pitch` along each axis.
+fn estimate_on(g: &Gray, (pitch_x, pitch_y): (f32, f32), (phase_x, phase_y): (f32, f32)) -> Option<CaptureEstimate> {
+    let r = ((0.12 * pitch_x.min(pitch_y)).round() as usize).max(1);
     let margin = r as f32 + 1.0;
-    let xs = lattice(p.phase_x, p.pitch_x, g.w, margin);
-    let ys = lattice(p.phase_y, p.pitch_y, g.h, margin);
-    let cxs = lattice(p.phase_x + 0.5 * p.pitch_x, p.pitch_x, g.w, margin);
-    let cys = lattice(p.phase_y + 0.5 * p.pitch_y, p.pitch_y, g.h, margin);
+    let xs = lattice(phase_x, pitch_x, g.w, margin);
+    let ys = lattice(phase_y, pitch_y, g.h, margin);
+    let cxs = lattice(phase_x + 0.5 * pitch_x, pitch_x, g.w, margin);
+    let cys = lattice(phase_y + 0.5 * pitch_y, pitch_y, g.h, margin);
     if xs.len() < 2 || ys.len() < 2 || cxs.len() < 2 || cys.len() < 2 {
-        return None;
-    }
-    let at = |xs: &[f32], ys: &[f32]| -> Vec<f32> {
-        ys.iter().flat_map(|&y| xs.iter().map(move |&x| (x, y))).map(|(x, y)| window_mean(&g, x, y, r)).collect()
-    };
-    let holes = at(&xs, &ys);
-    let crossings = holes.len();
-    let (a, b) = (median(holes), median(at(&cxs, &cys)));
-    if !(a.is_finite() && b.is_finite()) {
         return None;
     }
     // The grid's phase may sit half a pitch off (boundaries found at yarn centres), swapping the
@@ -219,29 +279,29 @@ pub fn estimate_capture(p: &Prepared) -> Option<CaptureEstimate> {
     let pct = |q: f32| sorted[((sorted.len() - 1) as f32 * q).round() as usize];
     let mid = 0.5 * (pct(0.02) + pct(0.98));
     let bright_share = sorted.iter().filter(|&&v| v > mid).count() as f32 / sorted.len() as f32;
-    let (hi, lo) = (a.max(b), a.min(b));
-    // How far the brightness of the bright lattice points reaches: a hole is a small spot closed
-    // on every side by yarns, a bright yarn top (a white weft on a dark warp, lit from the front)
-    // stays bright along its yarn. Luminance at ±SPOT_REACH pitches along x and along y, the
-    // better direction, as a share of the point's own.
-    let (bx, by) = if a >= b { (&xs, &ys) } else { (&cxs, &cys) };
-    let (dx, dy) = (SPOT_REACH * p.pitch_x, SPOT_REACH * p.pitch_y);
-    let reach: Vec<f32> = by
-        .iter()
-        .flat_map(|&y| bx.iter().map(move |&x| (x, y)))
-        .filter_map(|(x, y)| {
-            let c = window_mean(&g, x, y, r);
-            let along_x = 0.5 * (window_mean(&g, x - dx, y, r) + window_mean(&g, x + dx, y, r));
-            let along_y = 0.5 * (window_mean(&g, x, y - dy, r) + window_mean(&g, x, y + dy, r));
-            let m = along_x.max(along_y);
-            (c > 0.0 && m.is_finite()).then(|| m / c)
-        })
-        .collect();
-    let spot_reach = median(reach);
-    let backlit = hi >= BACKLIT_RATIO * lo.max(1e-6)
-        && bright_share <= BACKLIT_BRIGHT_SHARE
-        && spot_reach.is_finite()
-        && spot_reach <= MAX_HOLE_REACH;
+    let read = |holes: (&[f32], &[f32]), centres: (&[f32], &[f32])| {
+        LatticeReading::new(g, holes, centres, r, (SPOT_REACH * pitch_x, SPOT_REACH * pitch_y), bright_share)
+    };
+    // The crossings against the centres; where that shows no back light, the two lattices half a
+    // pitch off along one axis (crossings of one family's boundaries with the other's centres).
+    // Why: preparation can place one axis on the yarn centres and the other on the boundaries
+    // (a warp-faced satin over a white background, seed-3838 Mitsuba scene 01: the wefts' rows
+    // were read at their centres, so its lattices held no hole, the capture read `front` and
+    // the crop was framed on the weft centres; 17.8 dB). Only a back light found there is taken:
+    // where neither pairing shows one, the decision and its evidence stay the aligned pairing's.
+    // (Which of the pair is bright does not matter to a reading, so one read covers both
+    // mixed lattices.)
+    let aligned = read((&xs, &ys), (&cxs, &cys));
+    if !(aligned.hi.is_finite() && aligned.lo.is_finite()) {
+        return None;
+    }
+    let chosen = if aligned.backlit() {
+        aligned
+    } else {
+        Some(read((&xs, &cys), (&cxs, &ys))).filter(LatticeReading::backlit).unwrap_or(aligned)
+    };
+    let LatticeReading { hi, lo, reach: spot_reach, crossings, .. } = chosen;
+    let backlit = chosen.backlit();
     let capture = match (backlit, lo >= FRONT_SHARE * hi) {
         (true, true) => Capture::Both,
         (true, false) => Capture::Back,
@@ -304,6 +364,41 @@ mod tests {
         assert!(est(Capture::Front, 0.10, 0.52).shows_gaps());
         assert!(est(Capture::Back, 0.9, 0.9).shows_gaps());
         assert!(est(Capture::Both, 0.9, 0.5).shows_gaps());
+    }
+
+    /// A cloth of 16-px cells (luminance 0.1) with bright 5×5 holes at the cell corners (0.8, a
+    /// light behind), or, with `stripes`, bright weft tops along every row's centre instead
+    /// (a front-lit white weft: bright but no spot).
+    fn cloth(stripes: bool) -> Gray {
+        let mut g = Gray::new(160, 160);
+        for y in 0..160 {
+            for x in 0..160 {
+                let (u, v) = ((x + 2) % 16, (y + 2) % 16);
+                let bright = if stripes { (6..11).contains(&(y % 16)) } else { u < 5 && v < 5 };
+                g.data[y * 160 + x] = if bright { 0.8 } else { 0.1 };
+            }
+        }
+        g
+    }
+
+    #[test]
+    fn holes_are_found_when_the_lattice_is_half_a_pitch_off_along_one_axis() {
+        let on = |g: &Gray, phase| estimate_on(g, (16.0, 16.0), phase).unwrap();
+        let holes = cloth(false);
+        let right = on(&holes, (0.0, 0.0));
+        assert_eq!(right.capture, Capture::Both, "{right:?}");
+        // Boundaries at the rows' centres, or at the columns', or both: the same holes are found.
+        for phase in [(0.0, 8.0), (8.0, 0.0), (8.0, 8.0)] {
+            let e = on(&holes, phase);
+            assert_eq!(e.capture, Capture::Both, "{phase:?}: {e:?}");
+            assert_eq!((e.hole_luma, e.centre_luma), (0.8, 0.1), "{phase:?}");
+        }
+        // Bright weft tops are no holes at any phase: they reach along their yarn.
+        for phase in [(0.0, 0.0), (0.0, 8.0), (8.0, 0.0), (8.0, 8.0)] {
+            let e = on(&cloth(true), phase);
+            assert_eq!(e.capture, Capture::Front, "{phase:?}: {e:?}");
+            assert!(e.reach > MAX_HOLE_REACH, "{phase:?}: {e:?}");
+        }
     }
 
     #[test]
