@@ -30,7 +30,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::evaluator::Evaluator;
 use super::held_out::HeldOut;
-use super::refine::{front_at_elevation, is_front_light, lm_appearance, under_rig, LIGHT_MIN_GAIN};
+use super::refine::{descend_under, front_at_elevation, is_front_light, lm_appearance, under_rig, LIGHT_MIN_GAIN};
 use crate::params::ClothParams;
 use crate::scene::{LightRig, LightSpec};
 
@@ -106,9 +106,7 @@ impl Standing {
         if stop.load(Ordering::Relaxed) {
             return false;
         }
-        let next = under_rig(start, rig.clone());
-        let mut cand = self.cloth.clone();
-        let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+        let (l, cand, _) = descend_under(start, rig.clone(), &self.cloth, iters, stop);
         // A NaN loss is not below: the candidate is not kept.
         let better = l < (1.0 - LIGHT_MIN_GAIN) * self.loss;
         if better {

@@ -221,6 +221,22 @@ pub(super) fn under_rig(ev: &Evaluator, rig: crate::scene::LightRig) -> Evaluato
     ev.sibling(scene, ev.target().clone(), ev.block())
 }
 
+/// `cloth` re-traced under `rig` (`ev`'s evaluator otherwise, [`under_rig`]) and its appearance
+/// descended (`iters` Levenberg–Marquardt iterations): the loss, the descended cloth, the
+/// evaluator. The step every light scan takes before it compares a rig with the one that stands.
+pub(super) fn descend_under(
+    ev: &Evaluator,
+    rig: crate::scene::LightRig,
+    cloth: &ClothParams,
+    iters: usize,
+    stop: &AtomicBool,
+) -> (f32, ClothParams, Evaluator) {
+    let next = under_rig(ev, rig);
+    let mut cand = cloth.clone();
+    let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
+    (l, cand, next)
+}
+
 /// `rig` with the directional light named `front` raised or lowered to `elev_deg` above the
 /// cloth plane, its azimuth kept; `None` when the rig has no such light.
 pub(super) fn front_at_elevation(rig: &crate::scene::LightRig, elev_deg: f32) -> Option<crate::scene::LightRig> {
@@ -277,14 +293,7 @@ pub(super) fn fit_light_direction_from(
 ) -> (Option<Evaluator>, bool) {
     let mut best_loss = lm_appearance(ev, &ev.record(cloth), cloth, iters, stop);
     let mut kept: Option<Evaluator> = None;
-    // `cloth` re-traced under `rig` and its appearance descended: the loss, the appearance, the
-    // evaluator.
-    let under = |rig: crate::scene::LightRig, cloth: &ClothParams| {
-        let next = under_rig(ev, rig);
-        let mut cand = cloth.clone();
-        let l = lm_appearance(&next, &next.record(&cand), &mut cand, iters, stop);
-        (l, cand, next)
-    };
+    let under = |rig: crate::scene::LightRig, cloth: &ClothParams| descend_under(ev, rig, cloth, iters, stop);
     if *given != ev.scene().lights {
         // The earlier turn stands only where the settled cloth confirms it by the margin.
         if !stop.load(Ordering::Relaxed) {
