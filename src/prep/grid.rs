@@ -405,8 +405,7 @@ pub const MAX_FRACTION: usize = 12;
 /// two wefts, while a yarn cut in two by the edges of its own crown puts bright and dark halves
 /// into alternate fine cells. A fraction is also taken where the yarn boundaries' valleys make a
 /// lattice there (`ValleyRepeat::confirms`), the edge energy repeats there and the profile does
-/// not anti-correlate there (random patterns, glossy crowns: see the loop), whatever its edge
-/// fundamental; and a fraction is
+/// not anti-correlate there (random patterns, glossy crowns: see the loop); and a fraction is
 /// refused whatever the profile says where it is half a yarn by its valleys
 /// (`ValleyRepeat::half_a_yarn`) and the edges do not repeat there (a highlight line along each
 /// yarn), or it halves a lattice the valleys made ([`halves_a_yarn`]). The smallest such
@@ -447,9 +446,9 @@ fn yarn_pitch(
         let (llo, lhi) = ((0.88 * cand).ceil() as usize, (1.12 * cand).floor() as usize);
         let peak = highest_local_max(&ac, lo, hi).max(highest_local_max(&lac, llo.max(lo), lhi.min(hi)));
         let divides = |q: f64| (k as f64 * q / pitch_ac - 1.0).abs() <= FINE_DIVIDES_TOL;
-        // The edge fundamental must be at least 0.6 of the one at `pitch_ac` for the profile's and
-        // the edges' routes (first below); the valleys' route (second) is tried without it.
-        let edges_strong = eg.2 >= 0.6 * base.2;
+        if eg.2 < 0.6 * base.2 {
+            continue;
+        }
         // Whether the edge energy itself repeats at the candidate (not only has a fundamental
         // there, which a coarser lattice's harmonic gives too); computed once, where needed.
         let edges_repeat_at = std::cell::OnceCell::new();
@@ -468,7 +467,7 @@ fn yarn_pitch(
         // `FINE_DIVIDES_TOL` of `pitch_ac` (the edge pitch is searched ±12 % around the fraction;
         // one that wandered off it is another lattice, not this repeat's yarns).
         let finer = || divides(eg.0) && edges_repeat() && fine_class_spread(p, eg.0, eg.1, k) <= MAX_FINE_CLASS_SPREAD;
-        if edges_strong && eg.2 >= MIN_EDGE_CONFIDENCE && (peak >= 0.25 || finer()) {
+        if eg.2 >= MIN_EDGE_CONFIDENCE && (peak >= 0.25 || finer()) {
             // Half a yarn, whatever the profile says: the valleys repeat at twice the candidate and
             // not at it, and the edges do not repeat at it either. A highlight line along each
             // yarn's crown repeats at half the yarn pitch in the luminance profile (a Mitsuba render's
@@ -500,12 +499,7 @@ fn yarn_pitch(
         // there), while a random pattern's neighbouring yarns differ by their floats without
         // alternating (−0.08 to 0.12 on the thin dark warps above, over 160–256 px crops).
         // (A lattice taken here is never half a yarn by the rule above: that needs the edges not to
-        // repeat at the candidate, this needs them to.) The edge fundamental's 0.6 floor does not
-        // apply: on a random pattern the boundaries' edges are weak beside the steps between its
-        // floats, which repeat at the whole repeat (a random 4 × 6 of 8.5 px warps under an area
-        // light, seed-3838 scene 10: edge fundamental 0.044 at the yarns against 0.170 at the
-        // repeat, valley fundamental 0.67 and repeat 0.71 there; with the floor the yarn count came
-        // from the line shift, 5 instead of 6).
+        // repeat at the candidate, this needs them to.)
         if let Some(v) = (peak > -0.25 && edges_repeat()).then(valleys).flatten().filter(|v| v.confirms()) {
             // The edges' lattice where it is strong and divides the repeat, else the valleys'
             // where they divide it (either search can wander a few per cent on few yarns).
@@ -965,20 +959,15 @@ pub fn line_shift_yarns(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64
         return None;
     }
     // The shift of each band against the one `step` lines on, over the pairs: the best (signed
-    // shift, weighted mean correlation), the shift refined to a fraction of a pixel by the parabola
-    // through the correlations at its neighbours. Why the fraction: the yarn count is read from
-    // how many yarns the shift spans, and a whole-pixel shift is off by up to half a pixel, which
-    // on a one-yarn shift of thin yarns is most of the 15 % tolerance (a random 4 × 6 of 8.5 px
-    // warps, seed-3838 scene 10: shift 9 px, which fits 5 yarns of 10.2 px within tolerance
-    // before the true 6 of 8.5 px).
+    // shift, weighted mean correlation).
     let half = (period / 2.0).floor() as isize;
     let best_shift = |step: usize| {
+        let mut best = (0isize, f64::MIN);
         let pairs = bands.len().saturating_sub(step);
         if pairs == 0 {
-            return (0.0, f64::MIN);
+            return best;
         }
-        let shifts = -half + 1..=half;
-        let corr_at = |s: isize| {
+        for s in -half + 1..=half {
             // Each pair's correlation weighed by the pair's energy `√(Σaa · Σbb)`, capped at the
             // median pair's: a band without the weave's structure (a plain yarn-dyed stripe,
             // FabricNET W022's cream bands) correlates with its neighbour near 0 and must not
@@ -1006,23 +995,15 @@ pub fn line_shift_yarns(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64
                 .collect();
             let cap = median(sums.iter().map(|&(_, e)| e).collect());
             let (num, den) = sums.iter().fold((0.0, 0.0), |(n, d), &(c, e)| (n + c * e.min(cap), d + e.min(cap)));
-            if den > 0.0 {
-                num / den
-            } else {
-                0.0
+            let c = if den > 0.0 { num / den } else { 0.0 };
+            if c > best.1 {
+                best = (s, c);
             }
-        };
-        let corrs: Vec<f64> = shifts.clone().map(corr_at).collect();
-        if corrs.is_empty() {
-            return (0.0, f64::MIN);
         }
-        let i = (0..corrs.len()).fold(0, |b, i| if corrs[i] > corrs[b] { i } else { b });
-        let frac =
-            if i > 0 && i + 1 < corrs.len() { parabola_offset(corrs[i - 1], corrs[i], corrs[i + 1]) } else { 0.0 };
-        ((*shifts.start() + i as isize) as f64 + frac, corrs[i])
+        best
     };
     let (s_signed, c) = best_shift(1);
-    let s = s_signed.abs();
+    let s = s_signed.unsigned_abs() as f64;
     // The shift's correlation is judged against the bands' own repeat: hair, fibre and yarn
     // irregularity lower how well a band matches its neighbour and how well it matches itself one
     // period on by the same amount, so a neighbour that matches at least half as well as the
@@ -1033,12 +1014,12 @@ pub fn line_shift_yarns(g: &Gray, axis_x: bool, other: &AxisGrid, min_pitch: f64
     // Below the absolute floor a chance shift can win; a twill's or satin's lines step by the same
     // shift every line, so the bands two lines apart must then be shifted by twice as much
     // (modulo the repeat), within the tolerance of the yarn count below.
-    let second = (c < MIN_SHIFT_CORR).then(|| best_shift(2).0);
+    let second = (c < MIN_SHIFT_CORR).then(|| best_shift(2).0 as f64);
     (2..=8usize).find_map(|n| {
         let pitch = period / n as f64;
         let k = (s / pitch).round();
         let twice = second.is_none_or(|s2| {
-            let d = (s2 - 2.0 * s_signed).rem_euclid(period);
+            let d = (s2 - 2.0 * s_signed as f64).rem_euclid(period);
             d.min(period - d) <= 0.3 * pitch
         });
         (k >= 1.0 && (s - k * pitch).abs() <= 0.15 * pitch && pitch >= min_pitch && twice).then_some((period, n, c))
