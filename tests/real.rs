@@ -119,8 +119,10 @@ fn eval_real_on_a_folder_of_renders() {
     let (clean, noisy) = (load("fit.png"), load("fit_noise.png"));
     assert!((clean.psnr_srgb(&photo_img) - scored).abs() < 0.2, "{} vs {scored}", clean.psnr_srgb(&photo_img));
     assert!(noisy.rmse(&clean) > 1e-3, "fit_noise.png carries the noise: rmse {}", noisy.rmse(&clean));
-    // fit_sharp.png: the same registered replica without the fit's blur — the photo's size, as
-    // close to fit.png as a blur moves it (a few dB), and sharper (more energy in pixel-to-pixel steps).
+    // fit_sharp.png: the same registered replica without any blur — the photo's size, as close to
+    // fit.png as a blur moves it (a few dB), and at least as sharp (energy in pixel-to-pixel
+    // steps): fit.png carries the photo's own blur as the fit measured it, none where the fit saw
+    // no more than preparation's.
     let sharp = load("fit_sharp.png");
     assert_eq!((sharp.width, sharp.height), (clean.width, clean.height));
     assert!(sharp.psnr_srgb(&clean) > 15.0, "{}", sharp.psnr_srgb(&clean));
@@ -129,7 +131,7 @@ fn eval_real_on_a_folder_of_renders() {
             .map(|x| (0..im.height).map(|y| (im.get(x, y)[1] - im.get(x - 1, y)[1]).abs()).sum::<f32>())
             .sum::<f32>()
     };
-    assert!(roughness(&sharp) > roughness(&clean), "{} vs {}", roughness(&sharp), roughness(&clean));
+    assert!(roughness(&sharp) >= roughness(&clean), "{} vs {}", roughness(&sharp), roughness(&clean));
     // The fit is registered to the photo: on the contact sheet (160 px high, so the plain render's
     // 4 repeats of 2 yarns give a pitch of 20 px) it matches the photo better than itself moved by
     // one yarn, which swaps the yarn on top in every cell.
@@ -145,9 +147,10 @@ fn eval_real_on_a_folder_of_renders() {
 
 #[test]
 fn the_periodic_ceiling_is_high_on_a_periodic_render_and_falls_with_what_no_tile_holds() {
-    // A rotated twill render is periodic: its own prepared picture, registered back, matches it
-    // up to the preparation's blur and the render noise. A stain that no other repeat has
-    // (what hair or a wandering yarn is to a real photo) lowers the ceiling.
+    // A rotated twill render is periodic: the mean of its aligned repeats, registered back,
+    // matches it up to the render noise and the resampling (29.3 dB here; the mean after
+    // preparation's σ = pitch/16 blur, the ceiling until session 44, scored 24.8 dB). A stain
+    // that no other repeat has (what hair or a wandering yarn is to a real photo) lowers it.
     let img = rendered("twill22", "front", 3.0, 192, 4.0, 16);
     let p = prepare(&img.to_rgb32f(), &PrepOptions::default()).unwrap();
     let clean = periodic_ceiling(&p, &img);
@@ -165,7 +168,7 @@ fn the_periodic_ceiling_is_high_on_a_periodic_render_and_falls_with_what_no_tile
     let pt = prepare(&turned.to_rgb32f(), &PrepOptions::default()).unwrap();
     let rotated = periodic_ceiling(&pt, &turned);
     eprintln!("ceiling: clean {clean:.2} dB, stained {with_stain:.2} dB, rotated 12° {rotated:.2} dB");
-    assert!(clean > 20.0, "clean periodic render: {clean:.2} dB");
+    assert!(clean > 27.0, "clean periodic render: {clean:.2} dB");
     assert!(rotated > clean - 1.5, "rotated 12°: {rotated:.2} dB vs {clean:.2} dB at 4°");
     assert!(with_stain < clean - 2.0, "stain: {with_stain:.2} dB vs clean {clean:.2} dB");
 }

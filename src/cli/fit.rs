@@ -307,7 +307,7 @@ pub fn run_fit(args: &FitArgs) -> Result<()> {
             )?;
         }
         // fit.png, the registered render (no photo noise): the photo's size (the output framing).
-        // Beside it, the photo's periodic ceiling: what a fit that matched its crop exactly would score.
+        // Beside it, the photo's periodic ceiling: what a replica that matched its mean repeat exactly would score.
         let scores = written
             .registered
             .as_ref()

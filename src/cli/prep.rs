@@ -125,7 +125,7 @@ pub fn run(a: &PrepArgs) -> Result<()> {
     }
     // How periodic the photo is: the prepared picture (each repeat at its drift) against the photo.
     outln!(
-        "  repeats drift up to {:.1} px; the prepared periodic picture against the photo: {:.1} dB",
+        "  repeats drift up to {:.1} px; the photo's mean repeat against the photo: {:.1} dB",
         p.drift.max_shift(),
         woven::fit::real::periodic_ceiling(&p, &img)
     );

@@ -142,6 +142,10 @@ pub struct FitResult {
     /// Gaussian σ (fit pixels) of the blur applied to the renders before they were compared with
     /// the target: preparation's, or more where the photo adds its own (0 without preparation).
     pub blur_px: f32,
+    /// Gaussian σ (fit pixels) of the blur preparation gave the target (σ = pitch/16, paper §4;
+    /// 0 without preparation): the part of [`FitResult::blur_px`] that the photo itself does not
+    /// have.
+    pub prep_blur_px: f32,
 }
 
 /// What the stages after the input share: the fit's evaluator, the render settings, the run
@@ -574,6 +578,7 @@ fn pipeline(
             retraces: ev.traces().count(),
             phase_shift,
             blur_px,
+            prep_blur_px: target.blur_px,
         }),
         withheld,
     ))
