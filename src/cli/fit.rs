@@ -826,12 +826,13 @@ fn run_eval_renders(dir: &Path, args: &EvalArgs) -> Result<()> {
     let rep = eval_renders(dir, &opts, args.lights.is_none(), args.save.as_ref(), &mut |c| match &c.error {
         Some(e) => eprintln!("{}: fit failed: {e}", c.name),
         None => outln!(
-            "{}: true {} fit {} exact={} crop_psnr={:.1} dB colour_err={} {:.1} s{}",
+            "{}: true {} fit {} exact={} crop_psnr={:.1} dB photo_psnr={} colour_err={} {:.1} s{}",
             c.name,
             c.truth,
             c.fit,
             c.exact,
             c.crop_psnr_db,
+            c.photo_psnr_db.map_or("-".into(), |p| format!("{p:.1} dB")),
             c.colour_err.map_or("-".into(), |e| format!("{e:.3}")),
             c.secs,
             c.colours.map_or(String::new(), |f| format!(" [{}]", f.describe()))

@@ -15,7 +15,7 @@
 //! matrix inverted with its rows reversed.
 
 use super::capture::estimate_capture;
-use super::output::{registered_render_sharp, sheet_row, write_fit_outputs};
+use super::output::{registered_pair, sheet_row, write_fit_outputs};
 use super::report::quantile;
 use super::{fit, fit_prepared, FitOptions};
 use crate::image_io::Image;
@@ -43,6 +43,9 @@ pub struct RenderCase {
     pub exact: bool,
     /// PSNR of the fit against the crop it matched (sRGB, dB).
     pub crop_psnr_db: f32,
+    /// PSNR of `fit.png` (the fit registered to the input, with the input's own blur as the fit
+    /// measured it) against the whole input (sRGB, dB); `None` where preparation did not run.
+    pub photo_psnr_db: Option<f32>,
     /// Largest per-channel distance of the fit's warp and weft mean colours from the input's
     /// (linear), when the folder has label maps ([`FamilyColours::error`]).
     pub colour_err: Option<f32>,
@@ -71,13 +74,15 @@ impl RenderReport {
         let frac =
             |f: &dyn Fn(&RenderCase) -> bool| self.cases.iter().filter(|c| f(c)).count() as f32 / n.max(1) as f32;
         let psnr: Vec<f32> = self.cases.iter().map(|c| c.crop_psnr_db).collect();
+        let photo: Vec<f32> = self.cases.iter().filter_map(|c| c.photo_psnr_db).collect();
         let secs: Vec<f32> = self.cases.iter().map(|c| c.secs as f32).collect();
         let coloured: Vec<&RenderCase> = self.cases.iter().filter(|c| c.colour_err.is_some()).collect();
         let colour_ok = coloured.iter().filter(|c| c.colour_err.is_some_and(|e| e <= COLOUR_TOLERANCE)).count();
         format!(
-            "renders: n={n} pattern_exact={:.2} median_crop_psnr_db={:.1} colour_within_{COLOUR_TOLERANCE}={}/{} failed={} median_fit_s={:.1}",
+            "renders: n={n} pattern_exact={:.2} median_crop_psnr_db={:.1} median_photo_psnr_db={:.1} colour_within_{COLOUR_TOLERANCE}={}/{} failed={} median_fit_s={:.1}",
             frac(&|c| c.exact),
             quantile(&psnr, 0.5),
+            quantile(&photo, 0.5),
             colour_ok,
             coloured.len(),
             self.cases.iter().filter(|c| c.error.is_some()).count(),
@@ -94,16 +99,17 @@ impl RenderReport {
     /// Markdown table of the cases plus the summary line.
     pub fn markdown(&self) -> String {
         let mut s = String::from(
-            "| image | truth | fit | exact | crop PSNR (dB) | colour error | time (s) |\n|---|---|---|---|---|---|---|\n",
+            "| image | truth | fit | exact | crop PSNR (dB) | fit.png PSNR (dB) | colour error | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         );
         for c in &self.cases {
             s += &format!(
-                "| {} | {} | {} | {} | {:.1} | {} | {:.1} |\n",
+                "| {} | {} | {} | {} | {:.1} | {} | {} | {:.1} |\n",
                 c.name,
                 c.truth,
                 c.error.as_deref().map_or(c.fit.clone(), |e| format!("failed: {e}")),
                 if c.exact { "yes" } else { "no" },
                 c.crop_psnr_db,
+                c.photo_psnr_db.map_or("–".into(), |p| format!("{p:.1}")),
                 c.colour_err.map_or("–".into(), |e| format!("{e:.3}")),
                 c.secs
             );
@@ -191,7 +197,7 @@ fn family_mean(img: &Image, labels: &Image, warp: bool) -> Option<[f32; 3]> {
 }
 
 /// The family colours of the input and of `fit`, the fit registered to the input (same size,
-/// [`registered_render_sharp`]), each averaged over the SAME pure-label pixels: the visible part of
+/// [`registered_render_sharp`](super::output::registered_render_sharp)), each averaged over the SAME pure-label pixels: the visible part of
 /// each family where it lies on top, as the issue defines the figure. Averaging both over one set
 /// of pixels compares like with like — a shading gradient across a yarn (brighter crown, darker
 /// flanks) is in both means alike, and a fit registered to the wrong cells or coloured wrongly
@@ -235,6 +241,7 @@ fn eval_image(
         fit: "-".into(),
         exact: false,
         crop_psnr_db: 0.0,
+        photo_psnr_db: None,
         colour_err: None,
         colours: None,
         secs: 0.0,
@@ -248,17 +255,17 @@ fn eval_image(
             case.exact = res.params.cloth.pattern.reduced().equivalent(&truth.reduced());
             case.crop_psnr_db = res.psnr_db;
             case.row = Some(sheet_row(&res.target, &res.observed_render(), SHEET_ROW_H));
-            // Saved, the outputs' registration (one render of the repeat) serves the colours too.
-            let mut sharp = None;
+            // Saved, the outputs' registration (one render of the repeat) serves the scores too.
+            let mut registered = None;
             if let Some(s) = save {
                 let written = write_fit_outputs(&res, &s.join(name), true, opts.control.threads)?;
-                sharp = written.registered.map(|r| r.sharp);
+                registered = written.registered;
             }
+            let size = (input.width, input.height);
+            let registered = registered.or_else(|| registered_pair(&res, size, opts.control.threads));
+            case.photo_psnr_db = registered.as_ref().map(|r| r.blurred.psnr_srgb(&input));
             if let Some(l) = &labels {
-                let size = (input.width, input.height);
-                case.colours = sharp
-                    .or_else(|| registered_render_sharp(&res, size, opts.control.threads))
-                    .and_then(|fit| family_colours(&input, l, &fit));
+                case.colours = registered.as_ref().and_then(|r| family_colours(&input, l, &r.sharp));
                 case.colour_err = case.colours.map(|c| c.error());
             }
         }
@@ -379,6 +386,27 @@ mod tests {
         assert_eq!(bright.fit[0], bright.input[0]);
         // A fit of another size cannot be compared pixel for pixel.
         assert!(family_colours(&input, &labels, &Image::filled(8, 8, [0.5; 3])).is_none());
+    }
+
+    #[test]
+    fn the_summary_gives_the_median_fit_png_psnr_over_the_prepared_fits() {
+        let case = |photo: Option<f32>| RenderCase {
+            name: "m".into(),
+            truth: "10/01".into(),
+            fit: "10/01".into(),
+            exact: true,
+            crop_psnr_db: 30.0,
+            photo_psnr_db: photo,
+            colour_err: Some(0.01),
+            colours: None,
+            secs: 10.0,
+            error: None,
+            row: None,
+        };
+        let rep = RenderReport { cases: vec![case(Some(20.0)), case(None), case(Some(24.0)), case(Some(22.0))] };
+        let line = rep.summary_line();
+        assert!(line.contains("median_crop_psnr_db=30.0 median_photo_psnr_db=22.0 "), "{line}");
+        assert!(rep.markdown().contains("| 30.0 | – | 0.010 |"), "{}", rep.markdown());
     }
 
     #[test]
