@@ -254,7 +254,7 @@ impl RealReport {
 /// PSNR (sRGB) against `photo` of the photo's own periodic picture — the mean of the aligned
 /// repeats of the rectified photo *without* the blur preparation gives the fit's target
 /// (`prep::regularize::mean_of_repeats` on `Prepared::rectified`), each repeat moved back by its
-/// drift — mapped back to the photo through `H⁻¹` as `fit.png` is: bilinear, and beyond the
+/// drift — mapped back to the photo through `H⁻¹` as `fit.png` is: Keys cubic, and beyond the
 /// rectified image (the photo's corners that the rotation cropped away) continued by whole
 /// periods, as `fit.png` continues its repeat. A periodic replica that matched every repeat's
 /// mean exactly would score this against the whole photo: the ceiling of the whole-photo PSNR
@@ -296,7 +296,7 @@ pub fn periodic_ceiling(prepared: &Prepared, photo: &Image) -> f32 {
             let a = wrap(u - s[0], w, p.period_x, p.repeated_x);
             let b = wrap(v - s[1], h, p.period_y, p.repeated_y);
             let mut px = [0.0f32; 3];
-            crate::prep::image_ops::sample_into(mean.as_raw(), rw, rh, 3, a, b, &mut px);
+            crate::prep::image_ops::sample_cubic_into(mean.as_raw(), rw, rh, 3, a, b, &mut px);
             data.push(px);
         }
     }

@@ -14,7 +14,7 @@
 //!    (sum of squared bin totals) of the projection peaks. Weft and warp are perpendicular, so the
 //!    score of angle θ ∈ [−45°, 45°) is `E(θ) + E(θ + 90°)`. Search: 0.5° steps on a disc of radius
 //!    ≤ 128 px (wide peak, robust), then ±1° in 0.05° steps on the largest centred disc with a
-//!    parabolic fit of the peak. The image is then rotated (bilinear) by −θ and cropped to the
+//!    parabolic fit of the peak. The image is then rotated (Keys cubic) by −θ and cropped to the
 //!    largest centred rectangle of the input's aspect ratio that holds only valid pixels.
 //!    On twills the cell lattice's diagonals (and on a satin its float-end lattice) can out-score
 //!    the yarn axes, so the coarse Radon peaks and every whole degree within `NEAR_AXIS_DEG` of 0°
