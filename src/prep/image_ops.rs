@@ -138,7 +138,7 @@ pub(crate) fn sample_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y:
 /// Keys cubic (a = −0.5) sample of channel-interleaved data, taps clamped to the image; the
 /// result is clamped to the range of the four nearest samples (no overshoot past an edge).
 #[inline]
-pub(crate) fn sample_cubic_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
+pub fn sample_cubic_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
     let xf = x.clamp(0.0, (w - 1) as f64);
     let yf = y.clamp(0.0, (h - 1) as f64);
     let (x0, y0) = (xf.floor() as i64, yf.floor() as i64);
