@@ -135,36 +135,81 @@ pub(crate) fn sample_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y:
     }
 }
 
-/// Keys cubic (a = −0.5) sample of channel-interleaved data, taps clamped to the image; the
-/// result is clamped to the range of the four nearest samples (no overshoot past an edge).
-#[inline]
-pub fn sample_cubic_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
-    let xf = x.clamp(0.0, (w - 1) as f64);
-    let yf = y.clamp(0.0, (h - 1) as f64);
-    let (x0, y0) = (xf.floor() as i64, yf.floor() as i64);
-    let kw = |t: f32| {
-        [
-            ((-0.5 * t + 1.0) * t - 0.5) * t,
-            (1.5 * t - 2.5) * t * t + 1.0,
-            ((-1.5 * t + 2.0) * t + 0.5) * t,
-            (0.5 * t - 0.5) * t * t,
-        ]
-    };
-    let wx = kw((xf - x0 as f64) as f32);
-    let wy = kw((yf - y0 as f64) as f32);
-    let xs: [usize; 4] = std::array::from_fn(|i| (x0 + i as i64 - 1).clamp(0, w as i64 - 1) as usize);
-    let ys: [usize; 4] = std::array::from_fn(|j| (y0 + j as i64 - 1).clamp(0, h as i64 - 1) as usize);
-    for (ch, o) in out.iter_mut().enumerate().take(c) {
-        let at = |xx: usize, yy: usize| data[(yy * w + xx) * c + ch];
-        let mut acc = 0.0f32;
-        for j in 0..4 {
-            let row: f32 = (0..4).map(|i| wx[i] * at(xs[i], ys[j])).sum();
-            acc += wy[j] * row;
+/// The taps and weights of one Keys cubic sample (Keys, *Cubic convolution interpolation for
+/// digital image processing*, 1981; a = −0.5, "Catmull–Rom") of a `w × h` image at `(x, y)`:
+/// coordinates and taps clamped to the image. Computed once per position and shared by its
+/// channels.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct CubicTaps {
+    xs: [usize; 4],
+    ys: [usize; 4],
+    wx: [f32; 4],
+    wy: [f32; 4],
+    w: usize,
+}
+
+impl CubicTaps {
+    /// The taps −1, 0, 1, 2 around `(x, y)` in a `w × h` image.
+    #[inline]
+    pub(crate) fn at(w: usize, h: usize, x: f64, y: f64) -> Self {
+        let x = x.clamp(0.0, (w - 1) as f64);
+        let y = y.clamp(0.0, (h - 1) as f64);
+        let (x0, y0) = (x.floor() as i64, y.floor() as i64);
+        Self {
+            xs: std::array::from_fn(|i| (x0 + i as i64 - 1).clamp(0, w as i64 - 1) as usize),
+            ys: std::array::from_fn(|j| (y0 + j as i64 - 1).clamp(0, h as i64 - 1) as usize),
+            wx: keys_weights((x - x0 as f64) as f32),
+            wy: keys_weights((y - y0 as f64) as f32),
+            w,
         }
-        let n = [at(xs[1], ys[1]), at(xs[2], ys[1]), at(xs[1], ys[2]), at(xs[2], ys[2])];
+    }
+
+    /// The sample of channel `c` of channel-interleaved `data` (`ch` channels). Unclamped: the
+    /// kernel overshoots a little next to a sharp edge.
+    #[inline]
+    pub(crate) fn sample(&self, data: &[f32], ch: usize, c: usize) -> f32 {
+        let mut acc = 0.0f32;
+        for (&yy, wyj) in self.ys.iter().zip(self.wy) {
+            let mut row = 0.0f32;
+            for (&xx, wxi) in self.xs.iter().zip(self.wx) {
+                row += wxi * data[(yy * self.w + xx) * ch + c];
+            }
+            acc += wyj * row;
+        }
+        acc
+    }
+
+    /// [`CubicTaps::sample`] held to the range of the four nearest samples: no overshoot past an
+    /// edge (so no negative radiance and no ringing halo beside a hole).
+    #[inline]
+    pub(crate) fn sample_bounded(&self, data: &[f32], ch: usize, c: usize) -> f32 {
+        let at = |i: usize, j: usize| data[(self.ys[j] * self.w + self.xs[i]) * ch + c];
+        let n = [at(1, 1), at(2, 1), at(1, 2), at(2, 2)];
         let lo = n.iter().copied().fold(f32::INFINITY, f32::min);
         let hi = n.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-        *o = acc.clamp(lo, hi);
+        self.sample(data, ch, c).clamp(lo, hi)
+    }
+}
+
+/// Keys cubic convolution weights (a = −0.5) for the taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1).
+#[inline]
+fn keys_weights(t: f32) -> [f32; 4] {
+    [
+        ((-0.5 * t + 1.0) * t - 0.5) * t,
+        (1.5 * t - 2.5) * t * t + 1.0,
+        ((-1.5 * t + 2.0) * t + 0.5) * t,
+        (0.5 * t - 0.5) * t * t,
+    ]
+}
+
+/// Keys cubic sample of channel-interleaved data (`c` channels) at `(x, y)`, taps clamped to the
+/// image, each channel held to the range of its four nearest samples
+/// ([`CubicTaps::sample_bounded`]).
+#[inline]
+pub fn sample_cubic_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
+    let taps = CubicTaps::at(w, h, x, y);
+    for (ch, o) in out.iter_mut().enumerate().take(c) {
+        *o = taps.sample_bounded(data, c, ch);
     }
 }
 

@@ -47,7 +47,7 @@ use image::Rgb32FImage;
 use rayon::prelude::*;
 
 use super::drift::RepeatDrift;
-use super::image_ops::{blur_rgb, median, parabola_offset, Gray};
+use super::image_ops::{blur_rgb, median, parabola_offset, CubicTaps, Gray};
 
 /// Largest alignment shift searched, pixels (cost grows with its square).
 pub const MAX_SHIFT_PX: i32 = 8;
@@ -156,42 +156,6 @@ fn bilinear(data: &[f32], w: usize, h: usize, ch: usize, c: usize, x: f64, y: f6
     let top = at(x0, y0) + fx * (at(x1, y0) - at(x0, y0));
     let bot = at(x0, y1) + fx * (at(x1, y1) - at(x0, y1));
     top + fy * (bot - top)
-}
-
-/// Keys cubic convolution weights (a = −0.5, "Catmull–Rom") for the taps −1, 0, 1, 2 at fraction
-/// `t` ∈ [0, 1).
-#[inline]
-fn keys_weights(t: f32) -> [f32; 4] {
-    [
-        ((-0.5 * t + 1.0) * t - 0.5) * t,
-        (1.5 * t - 2.5) * t * t + 1.0,
-        ((-1.5 * t + 2.0) * t + 0.5) * t,
-        (0.5 * t - 0.5) * t * t,
-    ]
-}
-
-/// Bicubic (Keys) sample of channel `c`, coordinates and taps clamped to the image. Used for the
-/// colour samples: bilinear interpolation at a fractional offset `f` is a low-pass of variance
-/// `f(1 − f)` px², and averaged over the repeats' offsets it blurred the holes as much as a
-/// half-pixel misregistration; the cubic kernel passes the yarn-scale detail nearly unchanged.
-#[inline]
-fn bicubic(data: &[f32], w: usize, h: usize, ch: usize, c: usize, x: f64, y: f64) -> f32 {
-    let x = x.clamp(0.0, (w - 1) as f64);
-    let y = y.clamp(0.0, (h - 1) as f64);
-    let (x0, y0) = (x.floor() as i64, y.floor() as i64);
-    let wx = keys_weights((x - x0 as f64) as f32);
-    let wy = keys_weights((y - y0 as f64) as f32);
-    let mut acc = 0.0f32;
-    for (j, wyj) in wy.iter().enumerate() {
-        let yy = (y0 + j as i64 - 1).clamp(0, h as i64 - 1) as usize;
-        let mut row = 0.0f32;
-        for (i, wxi) in wx.iter().enumerate() {
-            let xx = (x0 + i as i64 - 1).clamp(0, w as i64 - 1) as usize;
-            row += wxi * data[(yy * w + xx) * ch + c];
-        }
-        acc += wyj * row;
-    }
-    acc
 }
 
 /// Whether a sample coordinate lies inside an axis of `n` pixels (half a pixel of slack for the
@@ -398,8 +362,13 @@ pub fn mean_of_repeats(
             for (u, cnt) in count.iter_mut().enumerate() {
                 let x = ox + u as f64;
                 if inside(x, w) {
+                    // Keys cubic (`CubicTaps`): bilinear interpolation at a fractional offset `f`
+                    // is a low-pass of variance `f(1 − f)` px², and averaged over the repeats'
+                    // offsets it blurred the holes as much as a half-pixel misregistration; the
+                    // cubic kernel passes the yarn-scale detail nearly unchanged.
+                    let taps = CubicTaps::at(w, h, x, y);
                     for c in 0..3 {
-                        row[u * 3 + c] += bicubic(src, w, h, 3, c, x, y);
+                        row[u * 3 + c] += taps.sample(src, 3, c);
                     }
                     *cnt += 1;
                 }
@@ -431,9 +400,10 @@ pub fn mean_of_repeats(
         let v = coord(&ly, y);
         for x in 0..w {
             let u = coord(&lx, x);
+            let taps = CubicTaps::at(lx.len, ly.len, u, v);
             for c in 0..3 {
                 // The cubic kernel overshoots a little at sharp edges; light is not negative.
-                row[x * 3 + c] = bicubic(&mean, lx.len, ly.len, 3, c, u, v).max(0.0);
+                row[x * 3 + c] = taps.sample(&mean, 3, c).max(0.0);
             }
         }
     });
