@@ -204,7 +204,7 @@ fn keys_weights(t: f32) -> [f32; 4] {
 
 /// Keys cubic sample of channel-interleaved data (`c` channels) at `(x, y)`, taps clamped to the
 /// image, each channel held to the range of its four nearest samples
-/// ([`CubicTaps::sample_bounded`]).
+/// (no overshoot past an edge, so no negative radiance).
 #[inline]
 pub fn sample_cubic_into(data: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
     let taps = CubicTaps::at(w, h, x, y);
